@@ -1,0 +1,600 @@
+// Surface-mesh import/export through assimp, into the plain arrays of triangle_mesh.hpp.
+
+#include "mpmgeom/triangle_mesh.hpp"
+
+#include <assimp/config.h>
+#include <assimp/material.h>
+#include <assimp/postprocess.h>
+#include <assimp/scene.h>
+#include <assimp/Exporter.hpp>
+#include <assimp/Importer.hpp>
+
+#include <algorithm>
+#include <array>
+#include <bit>
+#include <cctype>
+#include <cmath>
+#include <cstdint>
+#include <fstream>
+#include <limits>
+#include <memory>
+#include <numbers>
+#include <sstream>
+#include <string_view>
+#include <system_error>
+#include <unordered_map>
+#include <utility>
+
+namespace mpmgeom {
+
+namespace {
+
+namespace fs = std::filesystem;
+
+// Messages must stay on one line (they end up in logs and in ctest output); assimp's own error
+// strings sometimes carry newlines.
+std::string one_line(std::string text) {
+  std::replace_if(
+      text.begin(), text.end(), [](char c) { return c == '\n' || c == '\r'; }, ' ');
+  while (!text.empty() && std::isspace(static_cast<unsigned char>(text.back()))) text.pop_back();
+  return text;
+}
+
+[[noreturn]] void fail(const fs::path& file, const std::string& defect) {
+  throw MeshError("mesh '" + file.string() + "': " + one_line(defect));
+}
+
+// std::to_string(double) prints fixed 6 decimals, which turns 1e-9 into "0.000000".
+std::string format_number(double x) {
+  std::ostringstream out;
+  out << x;
+  return out.str();
+}
+
+std::string format_point(const Eigen::Vector3d& p) {
+  return '(' + format_number(p.x()) + ", " + format_number(p.y()) + ", " + format_number(p.z()) +
+         ')';
+}
+
+std::string lower_extension(const fs::path& file) {
+  std::string ext = file.extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(),
+                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  return ext;
+}
+
+// assimp only says "Failed to determine STL storage representation" for a truncated binary STL,
+// which does not tell the user what is wrong. A binary STL is an 80-byte header, a uint32
+// triangle count and 50 bytes per triangle; assimp treats a file starting with "solid" as ASCII
+// unless its size matches that layout, so only files that cannot be ASCII are checked here.
+void check_binary_stl_size(const fs::path& file) {
+  std::error_code ec;
+  const std::uintmax_t size = fs::file_size(file, ec);
+  std::ifstream in(file, std::ios::binary);
+  if (ec || !in) return;  // let assimp report the I/O problem in its own words
+  std::array<char, 84> head{};
+  in.read(head.data(), head.size());
+  const auto got = static_cast<std::size_t>(in.gcount());
+  std::size_t first = 0;
+  while (first < got && std::isspace(static_cast<unsigned char>(head[first]))) ++first;
+  if (got - first >= 5 && std::string_view(head.data() + first, 5) == "solid") return;
+  if (size < 84) {
+    fail(file, "binary STL is " + std::to_string(size) +
+                   " bytes, too short for the 84-byte header (truncated?)");
+  }
+  std::uint32_t count = 0;
+  for (int b = 3; b >= 0; --b) count = (count << 8) | static_cast<unsigned char>(head[80 + b]);
+  const std::uintmax_t expected = 84 + 50 * static_cast<std::uintmax_t>(count);
+  if (size != expected) {
+    fail(file, "binary STL header announces " + std::to_string(count) + " triangles (" +
+                   std::to_string(expected) + " bytes) but the file has " + std::to_string(size) +
+                   (size < expected ? " bytes (truncated?)" : " bytes"));
+  }
+}
+
+Eigen::Matrix4d to_eigen(const aiMatrix4x4& m) {
+  Eigen::Matrix4d e;
+  e << m.a1, m.a2, m.a3, m.a4, m.b1, m.b2, m.b3, m.b4, m.c1, m.c2, m.c3, m.c4, m.d1, m.d2, m.d3,
+      m.d4;
+  return e;
+}
+
+Eigen::Affine3d placement(const ImportOptions& options) {
+  constexpr double deg = std::numbers::pi / 180.0;
+  const Eigen::Matrix3d rotation =
+      (Eigen::AngleAxisd(options.rotation_deg.z() * deg, Eigen::Vector3d::UnitZ()) *
+       Eigen::AngleAxisd(options.rotation_deg.y() * deg, Eigen::Vector3d::UnitY()) *
+       Eigen::AngleAxisd(options.rotation_deg.x() * deg, Eigen::Vector3d::UnitX()))
+          .toRotationMatrix();
+  Eigen::Affine3d t = Eigen::Affine3d::Identity();
+  t.linear() = rotation * options.scale;
+  t.translation() = options.translation;
+  return t;
+}
+
+// Non-finite values are rejected before any post-processing step sees them: assimp's vertex
+// joining sorts and compares positions, which is meaningless for NaN. Indices here are those of
+// the file as assimp parsed it, which is the numbering closest to what the user can look up.
+void check_finite(const aiScene& scene, const fs::path& file) {
+  for (unsigned m = 0; m < scene.mNumMeshes; ++m) {
+    const aiMesh& mesh = *scene.mMeshes[m];
+    if (mesh.mVertices == nullptr) continue;
+    for (unsigned v = 0; v < mesh.mNumVertices; ++v) {
+      const aiVector3D& p = mesh.mVertices[v];
+      if (std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z)) continue;
+      std::string where = "vertex " + std::to_string(v);
+      if (scene.mNumMeshes > 1) {
+        where += " of sub-mesh " + std::to_string(m);
+        if (mesh.mName.length > 0) where += " '" + std::string(mesh.mName.C_Str()) + "'";
+      }
+      fail(file, where + " has a non-finite coordinate " + format_point({p.x, p.y, p.z}));
+    }
+  }
+}
+
+// Triangles of every mesh instance, in the output frame, before welding.
+struct Soup {
+  std::vector<Eigen::Vector3d> points;
+  std::vector<std::array<std::size_t, 3>> faces;
+  std::vector<int> face_part;
+  std::vector<std::string> part_names;
+  std::unordered_map<std::string, int> part_of_name;
+};
+
+int part_index(Soup& soup, const aiMesh& mesh, const aiNode& node) {
+  std::string name = mesh.mName.C_Str();
+  if (name.empty()) name = node.mName.C_Str();
+  if (name.empty()) name = "part" + std::to_string(soup.part_names.size());
+  const auto [it, inserted] = soup.part_of_name.try_emplace(name, soup.part_names.size());
+  if (inserted) soup.part_names.push_back(name);
+  return it->second;
+}
+
+void append_instance(const aiMesh& mesh, const aiNode& node, const Eigen::Affine3d& to_output,
+                     const fs::path& file, Soup& soup, ImportReport& report) {
+  std::size_t triangles = 0;
+  for (unsigned f = 0; f < mesh.mNumFaces; ++f) triangles += mesh.mFaces[f].mNumIndices == 3;
+  report.skipped_primitives += mesh.mNumFaces - triangles;
+  if (triangles == 0 || mesh.mVertices == nullptr) return;
+
+  const int part = part_index(soup, mesh, node);
+  const std::size_t base = soup.points.size();
+  for (unsigned v = 0; v < mesh.mNumVertices; ++v) {
+    const aiVector3D& p = mesh.mVertices[v];
+    const Eigen::Vector3d q = to_output * Eigen::Vector3d(p.x, p.y, p.z);
+    if (!q.allFinite()) {
+      fail(file, "vertex " + std::to_string(v) + " " + format_point({p.x, p.y, p.z}) +
+                     " becomes non-finite under the node transform, scale and rotation");
+    }
+    soup.points.push_back(q);
+  }
+  // A mirroring transform turns counter-clockwise into clockwise; swapping two corners keeps
+  // the faces pointing outwards.
+  const bool flip = to_output.linear().determinant() < 0.0;
+  for (unsigned f = 0; f < mesh.mNumFaces; ++f) {
+    const aiFace& face = mesh.mFaces[f];
+    if (face.mNumIndices != 3) continue;
+    for (unsigned k = 0; k < 3; ++k) {
+      if (face.mIndices[k] >= mesh.mNumVertices) {
+        fail(file, "face " + std::to_string(f) + " references vertex " +
+                       std::to_string(face.mIndices[k]) + " of " +
+                       std::to_string(mesh.mNumVertices));
+      }
+    }
+    std::array<std::size_t, 3> t{base + face.mIndices[0], base + face.mIndices[1],
+                                 base + face.mIndices[2]};
+    if (flip) std::swap(t[1], t[2]);
+    soup.faces.push_back(t);
+    soup.face_part.push_back(part);
+  }
+  report.input_vertices += mesh.mNumVertices;
+  report.input_triangles += triangles;
+}
+
+// Walks the node tree iteratively (files can nest deeply) and instantiates every mesh a node
+// references with the node's global transform, as aiProcess_PreTransformVertices would; that
+// step is not used because it merges meshes sharing a material and so loses the part names.
+Soup collect(const aiScene& scene, const ImportOptions& options, const fs::path& file,
+             ImportReport& report) {
+  Soup soup;
+  const Eigen::Affine3d to_output = placement(options);
+  std::vector<std::pair<const aiNode*, Eigen::Matrix4d>> stack;
+  if (scene.mRootNode) stack.emplace_back(scene.mRootNode, Eigen::Matrix4d::Identity());
+  while (!stack.empty()) {
+    const auto [node, parent] = stack.back();
+    stack.pop_back();
+    const Eigen::Matrix4d global = parent * to_eigen(node->mTransformation);
+    const Eigen::Affine3d instance = to_output * Eigen::Affine3d(global);
+    for (unsigned i = 0; i < node->mNumMeshes; ++i) {
+      if (node->mMeshes[i] >= scene.mNumMeshes) continue;  // ValidateDS rejects this already
+      append_instance(*scene.mMeshes[node->mMeshes[i]], *node, instance, file, soup, report);
+    }
+    // Reverse order so that children are visited in file order.
+    for (unsigned c = node->mNumChildren; c-- > 0;) stack.emplace_back(node->mChildren[c], global);
+  }
+  return soup;
+}
+
+using CellKey = std::array<std::int64_t, 3>;
+
+struct CellKeyHash {
+  std::size_t operator()(const CellKey& k) const noexcept {
+    // splitmix64 finaliser: cheap and scrambles neighbouring cells well.
+    auto mix = [](std::uint64_t x) {
+      x += 0x9e3779b97f4a7c15ULL;
+      x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ULL;
+      x = (x ^ (x >> 27)) * 0x94d049bb133111ebULL;
+      return x ^ (x >> 31);
+    };
+    std::uint64_t h = mix(static_cast<std::uint64_t>(k[0]));
+    h = mix(h ^ static_cast<std::uint64_t>(k[1]));
+    return static_cast<std::size_t>(mix(h ^ static_cast<std::uint64_t>(k[2])));
+  }
+};
+
+// Maps every point to a representative, returned in `welded`. Greedy: a point joins the first
+// earlier representative within `tolerance`, else it becomes one. Representatives live in a
+// hash grid with cells of 2 * tolerance, so a point only has to look at its own cell and, per
+// axis, the one neighbour on the side of the cell it is closer to (8 cells instead of 27).
+std::vector<std::size_t> weld(const std::vector<Eigen::Vector3d>& points, double tolerance,
+                              std::vector<Eigen::Vector3d>& welded) {
+  std::vector<std::size_t> representative(points.size());
+  welded.clear();
+  std::unordered_map<CellKey, std::size_t, CellKeyHash> head;
+  std::vector<std::size_t> next;  // chain of representatives sharing a cell
+  constexpr std::size_t none = std::numeric_limits<std::size_t>::max();
+  head.reserve(points.size());
+
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+  Eigen::Vector3d hi = -lo;
+  for (const auto& p : points) {
+    lo = lo.cwiseMin(p);
+    hi = hi.cwiseMax(p);
+  }
+  const double cell = 2.0 * tolerance;
+  // Beyond ~1e15 cells per axis the integer cell coordinates lose meaning (and would overflow
+  // for absurd tolerances); the tolerance is then below double resolution anyway, so weld
+  // exact positions, keyed by their bit patterns.
+  const bool exact = !(cell > 0.0) || (hi - lo).maxCoeff() / cell > 1e15;
+
+  const double tol2 = tolerance * tolerance;
+  for (std::size_t i = 0; i < points.size(); ++i) {
+    const Eigen::Vector3d& p = points[i];
+    CellKey key;
+    // Per axis the cell offsets to visit: always 0, plus the neighbour on the nearer side
+    // (both only when the point sits exactly in the middle).
+    std::array<std::array<int, 3>, 3> offsets{};
+    std::array<int, 3> n_offsets{1, 1, 1};
+    if (exact) {
+      // "+ 0.0" turns -0.0 into +0.0 so both signs of zero weld.
+      for (int a = 0; a < 3; ++a) key[a] = std::bit_cast<std::int64_t>(p[a] + 0.0);
+    } else {
+      for (int a = 0; a < 3; ++a) {
+        const double q = (p[a] - lo[a]) / cell;
+        const double c = std::floor(q);
+        key[a] = static_cast<std::int64_t>(c);
+        const double frac = q - c;
+        if (frac <= 0.5) offsets[a][n_offsets[a]++] = -1;
+        if (frac >= 0.5) offsets[a][n_offsets[a]++] = 1;
+      }
+    }
+    std::size_t found = none;
+    // Own cell first (offsets start with 0), stopping at the first representative in reach.
+    for (int x = 0; x < n_offsets[0] && found == none; ++x) {
+      for (int y = 0; y < n_offsets[1] && found == none; ++y) {
+        for (int z = 0; z < n_offsets[2] && found == none; ++z) {
+          const auto it =
+              head.find({key[0] + offsets[0][x], key[1] + offsets[1][y], key[2] + offsets[2][z]});
+          if (it == head.end()) continue;
+          for (std::size_t r = it->second; r != none; r = next[r]) {
+            if ((welded[r] - p).squaredNorm() <= tol2) {
+              found = r;
+              break;
+            }
+          }
+        }
+      }
+    }
+    if (found == none) {
+      found = welded.size();
+      welded.push_back(p);
+      auto [it, inserted] = head.try_emplace(key, found);
+      next.push_back(inserted ? none : it->second);
+      it->second = found;
+    }
+    representative[i] = found;
+  }
+  return representative;
+}
+
+TriangleMesh build(const Soup& soup, const ImportOptions& options, const fs::path& file,
+                   ImportReport& report) {
+  if (soup.faces.empty()) {
+    fail(file, report.skipped_primitives > 0
+                   ? "contains no triangles (only " + std::to_string(report.skipped_primitives) +
+                         " points or lines)"
+                   : "contains no triangles");
+  }
+  double tolerance = options.weld_tolerance;
+  if (tolerance == 0.0) {
+    Eigen::AlignedBox3d box;
+    for (const auto& p : soup.points) box.extend(p);
+    tolerance = 1e-9 * box.diagonal().norm();
+  }
+  report.weld_tolerance = tolerance;
+
+  std::vector<Eigen::Vector3d> welded;
+  const std::vector<std::size_t> rep = weld(soup.points, tolerance, welded);
+
+  // Keep faces whose three corners stay distinct; renumber the vertices and parts they use, in
+  // order of first appearance in the representatives / part list, so nothing unreferenced is
+  // returned.
+  constexpr std::size_t unused = std::numeric_limits<std::size_t>::max();
+  std::vector<std::array<std::size_t, 3>> faces;
+  std::vector<int> face_part;
+  faces.reserve(soup.faces.size());
+  face_part.reserve(soup.faces.size());
+  std::vector<std::size_t> new_vertex(welded.size(), unused);
+  std::vector<int> new_part(soup.part_names.size(), -1);
+  for (std::size_t f = 0; f < soup.faces.size(); ++f) {
+    const std::array<std::size_t, 3> t{rep[soup.faces[f][0]], rep[soup.faces[f][1]],
+                                       rep[soup.faces[f][2]]};
+    if (t[0] == t[1] || t[1] == t[2] || t[0] == t[2]) {
+      ++report.dropped_degenerate_faces;
+      continue;
+    }
+    for (std::size_t v : t) new_vertex[v] = 0;  // mark as used; numbered below
+    new_part[soup.face_part[f]] = 0;
+    faces.push_back(t);
+    face_part.push_back(soup.face_part[f]);
+  }
+  if (faces.empty()) {
+    fail(file, "contains no triangles with three distinct vertices (all " +
+                   std::to_string(soup.faces.size()) + " are degenerate after welding at " +
+                   format_number(tolerance) + ")");
+  }
+
+  std::size_t vertex_count = 0;
+  for (auto& v : new_vertex) {
+    if (v != unused) v = vertex_count++;
+  }
+  if (vertex_count > static_cast<std::size_t>(std::numeric_limits<int>::max()) ||
+      faces.size() > static_cast<std::size_t>(std::numeric_limits<int>::max())) {
+    fail(file, "too large for int indices (" + std::to_string(vertex_count) + " vertices, " +
+                   std::to_string(faces.size()) + " faces)");
+  }
+
+  TriangleMesh mesh;
+  mesh.V.resize(static_cast<Eigen::Index>(vertex_count), 3);
+  for (std::size_t v = 0; v < welded.size(); ++v) {
+    if (new_vertex[v] != unused) mesh.V.row(static_cast<Eigen::Index>(new_vertex[v])) = welded[v];
+  }
+  int part_count = 0;
+  for (std::size_t p = 0; p < new_part.size(); ++p) {
+    if (new_part[p] < 0) continue;
+    new_part[p] = part_count++;
+    mesh.part_names.push_back(soup.part_names[p]);
+  }
+  mesh.F.resize(static_cast<Eigen::Index>(faces.size()), 3);
+  mesh.part.resize(static_cast<Eigen::Index>(faces.size()));
+  for (std::size_t f = 0; f < faces.size(); ++f) {
+    const auto row = static_cast<Eigen::Index>(f);
+    for (int k = 0; k < 3; ++k) mesh.F(row, k) = static_cast<int>(new_vertex[faces[f][k]]);
+    mesh.part(row) = new_part[face_part[f]];
+  }
+  return mesh;
+}
+
+}  // namespace
+
+bool ImportOptions::valid(std::string* why) const {
+  auto no = [why](const char* reason) {
+    if (why) *why = reason;
+    return false;
+  };
+  if (!std::isfinite(scale) || !(scale > 0.0)) return no("scale must be finite and positive");
+  if (!translation.allFinite()) return no("translation must be finite");
+  if (!rotation_deg.allFinite()) return no("rotation_deg must be finite");
+  if (!std::isfinite(weld_tolerance) || weld_tolerance < 0.0) {
+    return no("weld_tolerance must be finite and non-negative (0 = automatic)");
+  }
+  return true;
+}
+
+TriangleMesh load_mesh(const fs::path& file, const ImportOptions& options, ImportReport* report) {
+  std::string why;
+  if (!options.valid(&why)) fail(file, "invalid import options: " + why);
+  std::error_code ec;
+  if (!fs::exists(file, ec)) fail(file, "file does not exist");
+  if (!fs::is_regular_file(file, ec)) fail(file, "is not a regular file");
+  if (lower_extension(file) == ".stl") check_binary_stl_size(file);
+
+  Assimp::Importer importer;
+  // Normals, colours and UVs would keep assimp from joining vertices that only differ in them
+  // (every STL corner has its own face normal); only positions matter here.
+  importer.SetPropertyInteger(AI_CONFIG_PP_RVC_FLAGS,
+                              aiComponent_NORMALS | aiComponent_TANGENTS_AND_BITANGENTS |
+                                  aiComponent_COLORS | aiComponent_TEXCOORDS |
+                                  aiComponent_BONEWEIGHTS | aiComponent_ANIMATIONS |
+                                  aiComponent_TEXTURES | aiComponent_LIGHTS | aiComponent_CAMERAS);
+  // Read and validate first, check positions, then post-process (see check_finite).
+  // aiProcess_FindInvalidData stays off: it would drop a mesh with NaN positions silently.
+  const aiScene* scene = importer.ReadFile(file.string(), aiProcess_ValidateDataStructure);
+  if (scene == nullptr) {
+    fail(file, std::string("assimp cannot read it: ") + importer.GetErrorString());
+  }
+  check_finite(*scene, file);
+  scene = importer.ApplyPostProcessing(aiProcess_RemoveComponent | aiProcess_Triangulate |
+                                       aiProcess_JoinIdenticalVertices);
+  if (scene == nullptr) {
+    fail(file, std::string("assimp post-processing failed: ") + importer.GetErrorString());
+  }
+
+  ImportReport local;
+  ImportReport& rep = report ? *report : local;
+  rep = ImportReport{};
+  const Soup soup = collect(*scene, options, file, rep);
+  return build(soup, options, file, rep);
+}
+
+void save_mesh(const TriangleMesh& mesh, const fs::path& file, const SaveOptions& options) {
+  const Eigen::Index nv = mesh.V.rows();
+  const Eigen::Index nf = mesh.F.rows();
+  if (nf == 0) fail(file, "nothing to write: the mesh has no faces");
+  if (mesh.part.size() != 0 && mesh.part.size() != nf) {
+    fail(file, "part has " + std::to_string(mesh.part.size()) + " entries for " +
+                   std::to_string(nf) + " faces");
+  }
+  if (!mesh.V.allFinite()) fail(file, "a vertex position is not finite");
+  for (Eigen::Index f = 0; f < nf; ++f) {
+    for (int k = 0; k < 3; ++k) {
+      if (mesh.F(f, k) < 0 || mesh.F(f, k) >= nv) {
+        fail(file, "face " + std::to_string(f) + " references vertex " +
+                       std::to_string(mesh.F(f, k)) + " of " + std::to_string(nv));
+      }
+    }
+    if (mesh.part.size() != 0 &&
+        (mesh.part(f) < 0 || static_cast<std::size_t>(mesh.part(f)) >= mesh.part_names.size())) {
+      fail(file, "face " + std::to_string(f) + " has part " + std::to_string(mesh.part(f)) +
+                     " of " + std::to_string(mesh.part_names.size()));
+    }
+  }
+
+  const std::string ext = lower_extension(file);
+  std::string format;
+  if (ext == ".stl") {
+    format = options.binary ? "stlb" : "stl";
+  } else if (ext == ".ply") {
+    format = options.binary ? "plyb" : "ply";
+  } else if (ext == ".obj") {
+    format = "objnomtl";  // no .mtl next to it: geometry files should be one file
+  } else {
+    fail(file, "cannot write extension '" + ext + "' (use .stl, .obj or .ply)");
+  }
+
+  // Without a part vector every face belongs to one part.
+  std::vector<std::string> names = mesh.part_names;
+  if (mesh.part.size() == 0) names.assign(1, names.empty() ? "mesh" : names.front());
+  auto part_of = [&](Eigen::Index f) { return mesh.part.size() == 0 ? 0 : mesh.part(f); };
+
+  // STL and OBJ get one vertex per face corner, carrying the face normal. Left to themselves,
+  // assimp's exporters generate normals: the STL one face normals on shared vertices (the last
+  // face sharing a vertex wins, so most facets get a wrong normal), the OBJ one smoothed vertex
+  // normals. The OBJ writer merges equal positions and normals again, so its file stays
+  // indexed. PLY keeps shared vertices and has no normals.
+  const bool per_corner = format != "ply" && format != "plyb";
+  if (static_cast<std::uintmax_t>(per_corner ? 3 * nf : nv) >
+      std::numeric_limits<unsigned>::max()) {
+    fail(file, "too large for assimp's unsigned indices");
+  }
+  auto to_ai = [](const Eigen::Vector3d& p) {
+    return aiVector3D(static_cast<ai_real>(p.x()), static_cast<ai_real>(p.y()),
+                      static_cast<ai_real>(p.z()));
+  };
+
+  // One aiMesh and node per non-empty part; the aiScene destructor frees everything allocated
+  // below.
+  auto scene = std::make_unique<aiScene>();
+  if (!per_corner) scene->mFlags |= AI_SCENE_FLAGS_NON_VERBOSE_FORMAT;
+  scene->mRootNode = new aiNode(file.stem().string());
+  scene->mMaterials = new aiMaterial*[1];
+  scene->mMaterials[0] = new aiMaterial();
+  scene->mNumMaterials = 1;
+  const aiString material_name("default");
+  scene->mMaterials[0]->AddProperty(&material_name, AI_MATKEY_NAME);
+
+  std::vector<std::vector<Eigen::Index>> faces_of(names.size());
+  for (Eigen::Index f = 0; f < nf; ++f) faces_of[static_cast<std::size_t>(part_of(f))].push_back(f);
+  std::vector<std::size_t> used;
+  for (std::size_t p = 0; p < names.size(); ++p) {
+    if (!faces_of[p].empty()) used.push_back(p);
+  }
+  const auto count = static_cast<unsigned>(used.size());
+  scene->mMeshes = new aiMesh*[count]();
+  scene->mNumMeshes = count;
+  scene->mRootNode->mChildren = new aiNode*[count]();
+  scene->mRootNode->mNumChildren = count;
+
+  std::vector<unsigned> local(static_cast<std::size_t>(nv), 0);  // indexed case: 1 + new index
+  for (unsigned m = 0; m < count; ++m) {
+    const std::vector<Eigen::Index>& faces = faces_of[used[m]];
+    auto* out = new aiMesh();
+    scene->mMeshes[m] = out;
+    out->mName = aiString(names[used[m]]);
+    out->mMaterialIndex = 0;
+    out->mPrimitiveTypes = aiPrimitiveType_TRIANGLE;
+    out->mNumFaces = static_cast<unsigned>(faces.size());
+    out->mFaces = new aiFace[faces.size()];
+    for (aiFace* face = out->mFaces; face != out->mFaces + faces.size(); ++face) {
+      face->mNumIndices = 3;
+      face->mIndices = new unsigned[3];
+    }
+
+    if (per_corner) {
+      out->mNumVertices = static_cast<unsigned>(3 * faces.size());
+      out->mVertices = new aiVector3D[3 * faces.size()];
+      out->mNormals = new aiVector3D[3 * faces.size()];
+      for (std::size_t i = 0; i < faces.size(); ++i) {
+        const Eigen::Vector3d a = mesh.V.row(mesh.F(faces[i], 0));
+        const Eigen::Vector3d b = mesh.V.row(mesh.F(faces[i], 1));
+        const Eigen::Vector3d c = mesh.V.row(mesh.F(faces[i], 2));
+        const Eigen::Vector3d n = (b - a).cross(c - a).normalized();  // zero if degenerate
+        const std::array<Eigen::Vector3d, 3> corners{a, b, c};
+        for (unsigned k = 0; k < 3; ++k) {
+          const auto v = static_cast<unsigned>(3 * i + k);
+          out->mVertices[v] = to_ai(corners[k]);
+          out->mNormals[v] = to_ai(n.allFinite() ? n : Eigen::Vector3d::Zero());
+          out->mFaces[i].mIndices[k] = v;
+        }
+      }
+    } else {
+      std::vector<Eigen::Index> vertices;  // this part's vertices, in order of first use
+      for (std::size_t i = 0; i < faces.size(); ++i) {
+        for (int k = 0; k < 3; ++k) {
+          unsigned& slot = local[static_cast<std::size_t>(mesh.F(faces[i], k))];
+          if (slot == 0) {
+            vertices.push_back(mesh.F(faces[i], k));
+            slot = static_cast<unsigned>(vertices.size());
+          }
+          out->mFaces[i].mIndices[k] = slot - 1;
+        }
+      }
+      out->mNumVertices = static_cast<unsigned>(vertices.size());
+      out->mVertices = new aiVector3D[vertices.size()];
+      for (std::size_t i = 0; i < vertices.size(); ++i) {
+        out->mVertices[i] = to_ai(mesh.V.row(vertices[i]).transpose());
+        local[static_cast<std::size_t>(vertices[i])] = 0;
+      }
+    }
+
+    auto* node = new aiNode(names[used[m]]);
+    node->mParent = scene->mRootNode;
+    node->mMeshes = new unsigned[1]{m};
+    node->mNumMeshes = 1;
+    scene->mRootNode->mChildren[m] = node;
+  }
+
+  Assimp::Exporter exporter;
+  if (exporter.Export(scene.get(), format, file.string()) != aiReturn_SUCCESS) {
+    fail(file, std::string("assimp cannot write it: ") + exporter.GetErrorString());
+  }
+}
+
+double surface_area(const TriangleMesh& mesh) {
+  double area = 0.0;
+  for (Eigen::Index f = 0; f < mesh.F.rows(); ++f) {
+    const Eigen::Vector3d a = mesh.V.row(mesh.F(f, 0));
+    const Eigen::Vector3d b = mesh.V.row(mesh.F(f, 1));
+    const Eigen::Vector3d c = mesh.V.row(mesh.F(f, 2));
+    area += 0.5 * (b - a).cross(c - a).norm();
+  }
+  return area;
+}
+
+Eigen::AlignedBox3d bounding_box(const TriangleMesh& mesh) {
+  Eigen::AlignedBox3d box;  // starts empty
+  for (Eigen::Index v = 0; v < mesh.V.rows(); ++v) box.extend(mesh.V.row(v).transpose().eval());
+  return box;
+}
+
+}  // namespace mpmgeom

@@ -1,0 +1,47 @@
+#pragma once
+// Material points as a structure of arrays. Particles are stored grouped by material so that
+// the constitutive update is dispatched once per group (see material.hpp).
+
+#include <cstddef>
+#include <vector>
+
+#include "mpm/types.hpp"
+
+namespace mpm {
+
+template <int D>
+struct Particles {
+  std::vector<Vec<D>> position;
+  std::vector<Vec<D>> velocity;
+  std::vector<Mat<D>> affine;    ///< APIC velocity matrix C_p (zero for PIC/FLIP)
+  std::vector<Mat<D>> deformation_gradient;
+  std::vector<Mat<D>> stress;    ///< Cauchy stress
+  std::vector<double> mass;
+  std::vector<double> volume0;     ///< initial volume; current volume = det(F) * volume0
+  std::vector<double> half_width;  ///< uGIMP half particle size in grid units (fixed)
+  std::vector<int> material;
+  std::vector<int> body;
+
+  // Scratch filled during a step (kept here so that nothing is allocated inside a step).
+  std::vector<Mat<D>> velocity_gradient;
+  std::vector<Vec<D>> displacement;
+
+  [[nodiscard]] std::size_t size() const { return position.size(); }
+
+  void resize(std::size_t n) {
+    position.resize(n, Vec<D>::Zero());
+    velocity.resize(n, Vec<D>::Zero());
+    affine.resize(n, Mat<D>::Zero());
+    deformation_gradient.resize(n, Mat<D>::Identity());
+    stress.resize(n, Mat<D>::Zero());
+    mass.resize(n, 0.0);
+    volume0.resize(n, 0.0);
+    half_width.resize(n, 0.0);
+    material.resize(n, 0);
+    body.resize(n, 0);
+    velocity_gradient.resize(n, Mat<D>::Zero());
+    displacement.resize(n, Vec<D>::Zero());
+  }
+};
+
+}  // namespace mpm

@@ -1,0 +1,26 @@
+#pragma once
+// The run loop behind `mpm run`: time stepping, particle snapshots, the energy/force history and
+// the summary.
+
+#include <filesystem>
+#include <string>
+
+#include "mpm/scene.hpp"
+
+namespace mpm {
+
+struct RunOptions {
+  std::filesystem::path out_dir;
+  bool overwrite = false;  ///< replace an earlier result in out_dir
+  bool quiet = false;      ///< no progress display
+};
+
+/// Exit codes: 0 done, 2 bad input (nothing written), 3 numerical fault (outputs up to the fault
+/// kept, summary says why), 4 output could not be written.
+enum ExitCode : int { kExitOk = 0, kExitBadInput = 2, kExitFault = 3, kExitIo = 4 };
+
+/// Runs the scene and writes OUT/particles.h5 + particles.xmf, OUT/history.csv and
+/// OUT/summary.json. Problems are reported as one line on stderr; returns an ExitCode.
+int run_scene(const Scene& scene, const RunOptions& options);
+
+}  // namespace mpm

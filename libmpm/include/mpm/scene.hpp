@@ -1,0 +1,85 @@
+#pragma once
+// A scene: everything `mpm run` needs, read from JSON and validated key by key. Any problem is a
+// SceneError whose message is one line: "FILE: /json/path: what was expected".
+
+#include <filesystem>
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <nlohmann/json_fwd.hpp>
+
+#include "mpm/material.hpp"
+#include "mpm/shape.hpp"
+#include "mpm/walls.hpp"
+
+namespace mpm {
+
+class SceneError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+enum class UpdateScheme { usl, musl };
+enum class Transfer { flip, apic };  ///< flip with flip_blend = 0 is PIC
+
+struct MaterialSpec {
+  std::string name;
+  Material model;
+};
+
+struct BodySpec {
+  enum class Shape { box, sphere };
+  std::string name;
+  int material = 0;
+  Shape shape = Shape::box;
+  Eigen::VectorXd min, max;  ///< box corners (dim)
+  Eigen::VectorXd center;    ///< sphere/disk centre (dim)
+  double radius = 0.0;
+  int particles_per_cell = 2;  ///< per direction
+  Eigen::VectorXd velocity;    ///< initial velocity (dim)
+  /// Optional standing-wave initial velocity added to `velocity`:
+  /// v(x) += amplitude * sin(wavenumber * (x[axis] - origin)), e.g. a vibration mode.
+  struct SineVelocity {
+    Eigen::VectorXd amplitude;
+    double wavenumber = 0.0;
+    int axis = 0;
+    double origin = 0.0;
+  };
+  std::optional<SineVelocity> velocity_sine;
+  Eigen::VectorXd body_force;  ///< acceleration added to gravity (dim)
+};
+
+struct Scene {
+  std::filesystem::path file;  ///< where it came from, for messages ("<memory>" otherwise)
+  std::string name;
+  int dimension = 3;
+  Eigen::VectorXd box_min, box_max;  ///< the grid box; walls sit on its faces
+  double spacing = 0.0;
+  ShapeKind shape = ShapeKind::bspline2;
+  UpdateScheme update = UpdateScheme::musl;
+  Transfer transfer = Transfer::apic;
+  double flip_blend = 1.0;        ///< FLIP fraction of the PIC/FLIP blend
+  double mass_threshold = 1e-9;   ///< nodes lighter than this times the mean particle mass are inactive
+  Eigen::VectorXd gravity;
+  double end_time = 0.0;
+  double cfl = 0.5;
+  std::optional<double> fixed_dt;  ///< set: fixed step; unset: adaptive from the CFL number
+  double output_interval = 0.0;
+  double history_interval = 0.0;  ///< 0: every step
+  std::vector<MaterialSpec> materials;
+  std::vector<BodySpec> bodies;
+  std::vector<BoxWall> walls;
+};
+
+/// Parses and validates a scene file. Throws SceneError.
+Scene load_scene(const std::filesystem::path& file);
+/// Same for an in-memory document; `origin` names it in messages.
+Scene parse_scene(const nlohmann::json& doc, const std::filesystem::path& origin);
+
+/// Largest wave speed over the scene's materials at the reference state.
+double max_wave_speed(const Scene& scene);
+
+}  // namespace mpm

@@ -1,0 +1,110 @@
+#pragma once
+// The explicit MPM solver on the standard grid, templated on the dimension. A step reads like
+// the algorithm:
+//
+//   particles_to_grid();        // mass, momentum, internal and external force
+//   update_grid(dt);            // v_I^{n+1} = (p_I + dt f_I) / m_I
+//   apply_walls(dt);            // wall conditions on the box faces, reaction impulses
+//   grid_to_particles(dt);      // v_p, x_p (PIC/FLIP or APIC); MUSL remap; stress update
+//
+// make_simulation() hides the dimension behind the Simulation interface for the run loop.
+
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "mpm/grid.hpp"
+#include "mpm/output.hpp"
+#include "mpm/particles.hpp"
+#include "mpm/scene.hpp"
+
+namespace mpm {
+
+struct Energies {
+  double kinetic = 0.0;
+  double strain = 0.0;
+  double gravity = 0.0;  ///< -sum m g.x (body forces are not potential energy)
+  [[nodiscard]] double total() const { return kinetic + strain + gravity; }
+};
+
+/// Dimension-independent face of a solver, used by the run loop and the command line.
+class Simulation {
+ public:
+  virtual ~Simulation() = default;
+  [[nodiscard]] virtual int dimension() const = 0;
+  [[nodiscard]] virtual std::size_t particle_count() const = 0;
+  /// The CFL-limited step for the current state: cfl * h / max(c + |v_p|).
+  [[nodiscard]] virtual double stable_dt(double cfl) const = 0;
+  virtual void step(double dt) = 0;
+  [[nodiscard]] virtual Energies energies() const = 0;
+  [[nodiscard]] virtual Eigen::Vector3d momentum() const = 0;
+  /// Impulse the walls gave the material since the last reset, one entry per scene wall.
+  [[nodiscard]] virtual const std::vector<Eigen::Vector3d>& wall_impulses() const = 0;
+  virtual void reset_wall_impulses() = 0;
+  [[nodiscard]] virtual ParticleFrame frame(double time, std::int64_t step) const = 0;
+  /// Set when the last step produced a non-finite value, an inverted element or a particle
+  /// outside the grid: names the particle, its material and the quantity.
+  [[nodiscard]] virtual const std::optional<std::string>& fault() const = 0;
+};
+
+std::unique_ptr<Simulation> make_simulation(const Scene& scene);
+
+template <int D>
+class Solver final : public Simulation {
+ public:
+  static constexpr int pad = 2;  ///< ghost nodes beyond each box face (B-spline/GIMP support)
+
+  explicit Solver(const Scene& scene);
+
+  [[nodiscard]] int dimension() const override { return D; }
+  [[nodiscard]] std::size_t particle_count() const override { return particles.size(); }
+  [[nodiscard]] double stable_dt(double cfl) const override;
+  void step(double dt) override;
+  [[nodiscard]] Energies energies() const override;
+  [[nodiscard]] Eigen::Vector3d momentum() const override;
+  [[nodiscard]] const std::vector<Eigen::Vector3d>& wall_impulses() const override {
+    return wall_impulse_;
+  }
+  void reset_wall_impulses() override;
+  [[nodiscard]] ParticleFrame frame(double time, std::int64_t step) const override;
+  [[nodiscard]] const std::optional<std::string>& fault() const override { return fault_; }
+
+  // The phases of a step, public so tests can check each one.
+  void particles_to_grid();
+  void update_grid(double dt);
+  void apply_walls(double dt);
+  void grid_to_particles(double dt);
+
+  /// Index range [begin, end) of the particles of each material.
+  [[nodiscard]] const std::vector<std::pair<std::size_t, std::size_t>>& material_groups() const {
+    return groups_;
+  }
+
+  Particles<D> particles;
+  Grid<D> grid;
+
+ private:
+  template <class Shape>
+  void scatter(bool with_force);
+  template <class Shape>
+  void gather(double dt);
+  template <class Shape>
+  void gather_velocity_gradient();
+  void constrain_walls(std::vector<Vec<D>>& velocity, bool record, double dt);
+  void update_stress(double dt);
+  void advect_and_check();
+  void fill_bodies();
+
+  Scene scene_;
+  Vec<D> gravity_;
+  std::vector<Vec<D>> body_acceleration_;  ///< gravity + body force, per body
+  std::vector<std::pair<std::size_t, std::size_t>> groups_;
+  std::vector<std::vector<int>> wall_nodes_;  ///< grid nodes on or beyond each wall
+  std::vector<Eigen::Vector3d> wall_impulse_;
+  double mass_threshold_ = 0.0;
+  double max_speed_ = 0.0;
+  std::optional<std::string> fault_;
+};
+
+}  // namespace mpm

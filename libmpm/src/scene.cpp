@@ -1,0 +1,474 @@
+// Scene loading: nlohmann/json parses, this file validates. Every key is checked for type and
+// range, unknown keys are errors, and every message names the file and the JSON path.
+
+#include "mpm/scene.hpp"
+
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <set>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+namespace mpm {
+namespace {
+
+using nlohmann::json;
+
+std::string describe(const json& j) {
+  std::string text = j.dump();
+  if (text.size() > 40) text = text.substr(0, 37) + "...";
+  return text;
+}
+
+/// A JSON object being read: remembers which keys were asked for so that finish() can reject
+/// the rest (a typo must never silently fall back to a default).
+class Reader {
+ public:
+  Reader(const json& node, std::string path, const std::string& file)
+      : node_(node), path_(std::move(path)), file_(file) {
+    if (!node_.is_object()) fail("expected an object, got " + describe(node_));
+  }
+
+  [[noreturn]] void fail(const std::string& what) const { fail_at(path_, what); }
+  [[noreturn]] void fail_at(const std::string& path, const std::string& what) const {
+    throw SceneError(file_ + ": " + (path.empty() ? "/" : path) + ": " + what);
+  }
+  [[nodiscard]] std::string child(const std::string& key) const { return path_ + "/" + key; }
+  [[nodiscard]] const std::string& path() const { return path_; }
+  [[nodiscard]] const std::string& file() const { return file_; }
+
+  [[nodiscard]] bool has(const std::string& key) {
+    known_.insert(key);
+    return node_.contains(key);
+  }
+
+  const json& required(const std::string& key) {
+    if (!has(key)) fail("missing required key '" + key + "'");
+    return node_.at(key);
+  }
+
+  double number(const std::string& key, std::optional<double> fallback = std::nullopt) {
+    if (!has(key)) {
+      if (!fallback) fail("missing required key '" + key + "'");
+      return *fallback;
+    }
+    const json& j = node_.at(key);
+    if (!j.is_number()) fail_at(child(key), "expected a number, got " + describe(j));
+    const double value = j.get<double>();
+    if (!std::isfinite(value)) fail_at(child(key), "expected a finite number");
+    return value;
+  }
+
+  double positive(const std::string& key, std::optional<double> fallback = std::nullopt) {
+    const double value = number(key, fallback);
+    if (!(value > 0.0)) fail_at(child(key), "expected a positive number, got " + fmt(value));
+    return value;
+  }
+
+  double in_range(const std::string& key, double lo, double hi, bool open_hi,
+                  std::optional<double> fallback = std::nullopt) {
+    const double value = number(key, fallback);
+    if (value < lo || value > hi || (open_hi && value == hi)) {
+      fail_at(child(key), "expected a number in [" + fmt(lo) + ", " + fmt(hi) + (open_hi ? ")" : "]") +
+                              ", got " + fmt(value));
+    }
+    return value;
+  }
+
+  int integer(const std::string& key, int lo, int hi, std::optional<int> fallback = std::nullopt) {
+    if (!has(key)) {
+      if (!fallback) fail("missing required key '" + key + "'");
+      return *fallback;
+    }
+    const json& j = node_.at(key);
+    if (!j.is_number_integer()) fail_at(child(key), "expected an integer, got " + describe(j));
+    const auto value = j.get<long long>();
+    if (value < lo || value > hi) {
+      fail_at(child(key), "expected an integer in [" + std::to_string(lo) + ", " +
+                              std::to_string(hi) + "], got " + std::to_string(value));
+    }
+    return static_cast<int>(value);
+  }
+
+  bool boolean(const std::string& key, bool fallback) {
+    if (!has(key)) return fallback;
+    const json& j = node_.at(key);
+    if (!j.is_boolean()) fail_at(child(key), "expected true or false, got " + describe(j));
+    return j.get<bool>();
+  }
+
+  std::string string(const std::string& key, std::optional<std::string> fallback = std::nullopt) {
+    if (!has(key)) {
+      if (!fallback) fail("missing required key '" + key + "'");
+      return *fallback;
+    }
+    const json& j = node_.at(key);
+    if (!j.is_string()) fail_at(child(key), "expected a string, got " + describe(j));
+    return j.get<std::string>();
+  }
+
+  /// A string that must be one of `choices`.
+  std::string choice(const std::string& key, const std::vector<std::string>& choices,
+                     std::optional<std::string> fallback = std::nullopt) {
+    std::string value = string(key, std::move(fallback));
+    for (const auto& c : choices) {
+      if (c == value) return value;
+    }
+    std::string list;
+    for (const auto& c : choices) list += (list.empty() ? "" : ", ") + c;
+    fail_at(child(key), "expected one of " + list + ", got \"" + value + "\"");
+  }
+
+  Eigen::VectorXd vector(const std::string& key, int dim,
+                         std::optional<Eigen::VectorXd> fallback = std::nullopt) {
+    if (!has(key)) {
+      if (!fallback) fail("missing required key '" + key + "'");
+      return *fallback;
+    }
+    const json& j = node_.at(key);
+    if (!j.is_array() || static_cast<int>(j.size()) != dim) {
+      fail_at(child(key), "expected an array of " + std::to_string(dim) + " numbers (dimension " +
+                              std::to_string(dim) + "), got " + describe(j));
+    }
+    Eigen::VectorXd v(dim);
+    for (int d = 0; d < dim; ++d) {
+      if (!j[d].is_number() || !std::isfinite(j[d].get<double>())) {
+        fail_at(child(key) + "/" + std::to_string(d), "expected a finite number, got " +
+                                                          describe(j[d]));
+      }
+      v[d] = j[d].get<double>();
+    }
+    return v;
+  }
+
+  Reader object(const std::string& key) { return {required(key), child(key), file_}; }
+
+  /// The elements of a non-empty array of objects.
+  std::vector<Reader> objects(const std::string& key, bool allow_empty) {
+    const json& j = required(key);
+    if (!j.is_array()) fail_at(child(key), "expected an array, got " + describe(j));
+    if (j.empty() && !allow_empty) fail_at(child(key), "expected at least one entry");
+    std::vector<Reader> out;
+    for (std::size_t i = 0; i < j.size(); ++i) {
+      out.emplace_back(j[i], child(key) + "/" + std::to_string(i), file_);
+    }
+    return out;
+  }
+
+  void finish() const {
+    for (const auto& item : node_.items()) {
+      if (known_.count(item.key()) == 0) {
+        std::string list;
+        for (const auto& k : known_) list += (list.empty() ? "" : ", ") + k;
+        fail_at(child(item.key()), "unknown key (expected one of: " + list + ")");
+      }
+    }
+  }
+
+  static std::string fmt(double v) {
+    std::ostringstream s;
+    s << v;
+    return s.str();
+  }
+
+ private:
+  const json& node_;
+  std::string path_;
+  const std::string& file_;
+  std::set<std::string> known_;
+};
+
+Material read_material(Reader& r, int dim) {
+  const std::string model = r.choice("model", {"linear_elastic", "neo_hookean"});
+  const double rho = r.positive("density");
+  const double E = r.positive("youngs_modulus");
+  // The 1D bar is in uniaxial stress and does not use nu; 2D/3D need it.
+  const double nu = dim == 1 ? r.in_range("poisson_ratio", -1.0, 0.5, true, 0.0)
+                             : r.number("poisson_ratio");
+  if (!(nu > -1.0 && nu < 0.5)) {
+    r.fail_at(r.child("poisson_ratio"),
+              "expected a Poisson ratio in (-1, 0.5) (0.5 is incompressible: lambda is infinite), "
+              "got " +
+                  Reader::fmt(nu));
+  }
+  if (model == "linear_elastic") return LinearElastic{rho, E, nu};
+  return NeoHookean{rho, E, nu};
+}
+
+BodySpec read_body(Reader& r, int index, const Scene& scene,
+                   const std::map<std::string, int>& material_index) {
+  const int dim = scene.dimension;
+  BodySpec body;
+  body.name = r.string("name", "body" + std::to_string(index));
+  const std::string material = r.string("material");
+  const auto it = material_index.find(material);
+  if (it == material_index.end()) {
+    r.fail_at(r.child("material"), "no material named \"" + material + "\" in /materials");
+  }
+  body.material = it->second;
+  body.particles_per_cell = r.integer("particles_per_cell", 1, 8, 2);
+  const Eigen::VectorXd zero = Eigen::VectorXd::Zero(dim);
+  body.velocity = r.vector("velocity", dim, zero);
+  body.body_force = r.vector("body_force", dim, zero);
+  if (r.has("velocity_sine")) {
+    Reader sine = r.object("velocity_sine");
+    BodySpec::SineVelocity field;
+    field.amplitude = sine.vector("amplitude", dim);
+    field.wavenumber = sine.number("wavenumber");
+    field.axis = sine.integer("axis", 0, dim - 1, 0);
+    field.origin = sine.number("origin", 0.0);
+    sine.finish();
+    body.velocity_sine = field;
+  }
+
+  Reader shape = r.object("shape");
+  const std::vector<std::string> types =
+      dim == 1 ? std::vector<std::string>{"box", "segment"}
+               : std::vector<std::string>{"box", dim == 2 ? "disk" : "sphere"};
+  const std::string type = shape.choice("type", types);
+  Eigen::VectorXd lo, hi;
+  if (type == "box" || type == "segment") {
+    body.shape = BodySpec::Shape::box;
+    body.min = shape.vector("min", dim);
+    body.max = shape.vector("max", dim);
+    for (int d = 0; d < dim; ++d) {
+      if (!(body.min[d] < body.max[d])) {
+        shape.fail_at(shape.child("max") + "/" + std::to_string(d),
+                      "must be greater than min (" + Reader::fmt(body.min[d]) + "), got " +
+                          Reader::fmt(body.max[d]));
+      }
+    }
+    lo = body.min;
+    hi = body.max;
+  } else {
+    body.shape = BodySpec::Shape::sphere;
+    body.center = shape.vector("center", dim);
+    body.radius = shape.positive("radius");
+    lo = body.center.array() - body.radius;
+    hi = body.center.array() + body.radius;
+  }
+  shape.finish();
+  for (int d = 0; d < dim; ++d) {
+    if (lo[d] < scene.box_min[d] || hi[d] > scene.box_max[d]) {
+      shape.fail("body extends outside the grid box /grid (axis " + std::to_string(d) + ": [" +
+                 Reader::fmt(lo[d]) + ", " + Reader::fmt(hi[d]) + "] not inside [" +
+                 Reader::fmt(scene.box_min[d]) + ", " + Reader::fmt(scene.box_max[d]) + "])");
+    }
+  }
+  return body;
+}
+
+BoxWall read_wall(Reader& r, int dim) {
+  static const char* const kFaces[] = {"xmin", "xmax", "ymin", "ymax", "zmin", "zmax"};
+  std::vector<std::string> faces(kFaces, kFaces + 2 * dim);
+  BoxWall wall;
+  wall.name = r.choice("face", faces);
+  for (int f = 0; f < 2 * dim; ++f) {
+    if (faces[f] == wall.name) {
+      wall.axis = f / 2;
+      wall.side = f % 2 == 0 ? -1 : 1;
+    }
+  }
+  const std::string condition = r.choice("condition", {"sticky", "slip", "friction"});
+  wall.contact.separable = r.boolean("separable", false);
+  if (condition == "friction") {
+    wall.contact.condition = Friction{r.number("mu")};
+    if (std::get<Friction>(wall.contact.condition).mu < 0.0) {
+      r.fail_at(r.child("mu"), "expected a friction coefficient >= 0");
+    }
+  } else {
+    if (r.has("mu")) r.fail_at(r.child("mu"), "only used with \"condition\": \"friction\"");
+    if (condition == "sticky") {
+      wall.contact.condition = Sticky{};
+    } else {
+      wall.contact.condition = Slip{};
+    }
+  }
+  return wall;
+}
+
+}  // namespace
+
+double max_wave_speed(const Scene& scene) {
+  double c = 0.0;
+  for (const auto& m : scene.materials) {
+    switch (scene.dimension) {
+      case 1:
+        c = std::max(c, wave_speed<1>(m.model));
+        break;
+      case 2:
+        c = std::max(c, wave_speed<2>(m.model));
+        break;
+      default:
+        c = std::max(c, wave_speed<3>(m.model));
+    }
+  }
+  return c;
+}
+
+Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
+  const std::string file = origin.string();
+  Reader root(doc, "", file);
+  Scene scene;
+  scene.file = origin;
+  scene.name = root.string("name", origin.stem().string());
+  const int dim = scene.dimension = root.integer("dimension", 1, 3);
+
+  {
+    Reader grid = root.object("grid");
+    scene.box_min = grid.vector("min", dim);
+    scene.box_max = grid.vector("max", dim);
+    scene.spacing = grid.positive("spacing");
+    double nodes = 1.0;
+    for (int d = 0; d < dim; ++d) {
+      const double cells = (scene.box_max[d] - scene.box_min[d]) / scene.spacing;
+      if (!(cells >= 1.0)) {
+        grid.fail_at(grid.child("max") + "/" + std::to_string(d),
+                     "the box must be at least one cell (spacing) wide on every axis");
+      }
+      // Walls sit on the box faces, which must be grid lines.
+      if (std::abs(cells - std::round(cells)) > 1e-6 * cells) {
+        grid.fail_at(grid.child("spacing"), "box extent " +
+                                                Reader::fmt(scene.box_max[d] - scene.box_min[d]) +
+                                                " on axis " + std::to_string(d) +
+                                                " is not a whole number of cells of spacing " +
+                                                Reader::fmt(scene.spacing));
+      }
+      nodes *= std::round(cells) + 5.0;  // plus the padding the solver adds
+    }
+    if (nodes > 4e8) {
+      grid.fail_at(grid.child("spacing"), "the grid would have " + Reader::fmt(nodes) +
+                                              " nodes (limit 4e8); use a larger spacing");
+    }
+    grid.finish();
+  }
+
+  const std::string shape = root.choice("shape_function", {"linear", "gimp", "bspline2"}, "bspline2");
+  scene.shape = shape == "linear" ? ShapeKind::linear
+                : shape == "gimp" ? ShapeKind::gimp
+                                  : ShapeKind::bspline2;
+
+  if (root.has("scheme")) {
+    Reader scheme = root.object("scheme");
+    scene.update = scheme.choice("update", {"usl", "musl"}, "musl") == "usl" ? UpdateScheme::usl
+                                                                             : UpdateScheme::musl;
+    const std::string transfer = scheme.choice("transfer", {"apic", "flip", "pic"}, "apic");
+    scene.transfer = transfer == "apic" ? Transfer::apic : Transfer::flip;
+    if (transfer == "flip") {
+      scene.flip_blend = scheme.in_range("flip_blend", 0.0, 1.0, false, 0.99);
+    } else {
+      scene.flip_blend = 0.0;
+      if (scheme.has("flip_blend")) {
+        scheme.fail_at(scheme.child("flip_blend"), "only used with \"transfer\": \"flip\"");
+      }
+    }
+    scene.mass_threshold = scheme.in_range("mass_threshold", 0.0, 0.5, false, 1e-9);
+    scheme.finish();
+  }
+
+  scene.gravity = root.vector("gravity", dim, Eigen::VectorXd::Zero(dim));
+
+  std::map<std::string, int> material_index;
+  for (auto& m : root.objects("materials", false)) {
+    MaterialSpec spec;
+    spec.name = m.string("name");
+    if (material_index.count(spec.name) != 0) {
+      m.fail_at(m.child("name"), "duplicate material name \"" + spec.name + "\"");
+    }
+    spec.model = read_material(m, dim);
+    m.finish();
+    material_index[spec.name] = static_cast<int>(scene.materials.size());
+    scene.materials.push_back(std::move(spec));
+  }
+
+  {
+    auto bodies = root.objects("bodies", false);
+    for (std::size_t i = 0; i < bodies.size(); ++i) {
+      scene.bodies.push_back(read_body(bodies[i], static_cast<int>(i), scene, material_index));
+      bodies[i].finish();
+    }
+  }
+
+  if (root.has("walls")) {
+    std::set<std::string> faces;
+    for (auto& w : root.objects("walls", true)) {
+      BoxWall wall = read_wall(w, dim);
+      if (!faces.insert(wall.name).second) {
+        w.fail_at(w.child("face"), "a second wall on face " + wall.name);
+      }
+      w.finish();
+      scene.walls.push_back(std::move(wall));
+    }
+  }
+
+  {
+    Reader time = root.object("time");
+    scene.end_time = time.positive("end");
+    scene.cfl = time.in_range("cfl", 1e-6, 1.0, false, 0.5);
+    if (time.has("dt")) {
+      scene.fixed_dt = time.positive("dt");
+      // Explicit MPM is stable for dt <= h / c (CFL number 1) at best.
+      const double limit = scene.spacing / max_wave_speed(scene);
+      if (*scene.fixed_dt > limit) {
+        time.fail_at(time.child("dt"), "time step " + Reader::fmt(*scene.fixed_dt) +
+                                           " is above the stability limit h/c = " +
+                                           Reader::fmt(limit) + " (CFL number " +
+                                           Reader::fmt(*scene.fixed_dt / limit) + " > 1)");
+      }
+    }
+    time.finish();
+  }
+
+  scene.output_interval = scene.end_time / 50.0;
+  if (root.has("output")) {
+    Reader output = root.object("output");
+    scene.output_interval = output.positive("interval", scene.output_interval);
+    scene.history_interval = output.number("history_interval", 0.0);
+    if (scene.history_interval < 0.0) {
+      output.fail_at(output.child("history_interval"), "expected a number >= 0 (0: every step)");
+    }
+    output.finish();
+  }
+  root.finish();
+  return scene;
+}
+
+Scene load_scene(const std::filesystem::path& file) {
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(file, ec)) {
+    throw SceneError(file.string() + ": scene file does not exist or is not a file");
+  }
+  std::ifstream in(file);
+  if (!in) throw SceneError(file.string() + ": cannot open the scene file");
+  json doc;
+  try {
+    doc = json::parse(in);
+  } catch (const json::parse_error& e) {
+    // e.what() is "[json.exception.parse_error.101] parse error at line 3, column 5: ..."
+    std::string what = e.what();
+    const auto at = what.find("parse error");
+    throw SceneError(file.string() + ": invalid JSON: " +
+                     (at == std::string::npos ? what : what.substr(at)));
+  }
+  return parse_scene(doc, file);
+}
+
+std::string_view to_string(ShapeKind kind) {
+  switch (kind) {
+    case ShapeKind::linear:
+      return "linear";
+    case ShapeKind::gimp:
+      return "gimp";
+    case ShapeKind::bspline2:
+      break;
+  }
+  return "bspline2";
+}
+
+std::string_view model_name(const Material& m) {
+  return std::holds_alternative<LinearElastic>(m) ? "linear_elastic" : "neo_hookean";
+}
+
+}  // namespace mpm

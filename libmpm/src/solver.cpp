@@ -1,0 +1,500 @@
+// The explicit MPM step on the standard grid (USL / MUSL, PIC-FLIP / APIC).
+
+#include "mpm/solver.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <sstream>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
+
+namespace mpm {
+namespace {
+
+template <int D>
+Vec<D> to_vec(const Eigen::VectorXd& v) {
+  return v.head<D>();
+}
+
+template <int D>
+bool inside(const BodySpec& body, const Vec<D>& x) {
+  if (body.shape == BodySpec::Shape::box) {
+    return (x.array() >= to_vec<D>(body.min).array()).all() &&
+           (x.array() <= to_vec<D>(body.max).array()).all();
+  }
+  return (x - to_vec<D>(body.center)).squaredNorm() <= body.radius * body.radius;
+}
+
+template <int D>
+std::string format_vec(const Vec<D>& v) {
+  std::ostringstream s;
+  s.precision(6);
+  s << "(";
+  for (int d = 0; d < D; ++d) s << (d ? ", " : "") << v[d];
+  s << ")";
+  return s.str();
+}
+
+}  // namespace
+
+template <int D>
+Solver<D>::Solver(const Scene& scene) : scene_(scene) {
+  const double h = scene.spacing;
+  Index<D> cells;
+  for (int d = 0; d < D; ++d) {
+    cells[d] = static_cast<int>(std::lround((scene.box_max[d] - scene.box_min[d]) / h));
+  }
+  grid.resize(to_vec<D>(scene.box_min) - Vec<D>::Constant(pad * h), h,
+              cells + Index<D>::Constant(1 + 2 * pad));
+  gravity_ = to_vec<D>(scene.gravity);
+  for (const auto& body : scene.bodies) {
+    body_acceleration_.push_back(gravity_ + to_vec<D>(body.body_force));
+  }
+  fill_bodies();
+
+  const double mean_mass =
+      particles.size() ? std::accumulate(particles.mass.begin(), particles.mass.end(), 0.0) /
+                             static_cast<double>(particles.size())
+                       : 0.0;
+  mass_threshold_ = scene.mass_threshold * mean_mass;
+
+  // Nodes on the wall plane and the ghost nodes beyond it carry the wall condition.
+  for (const auto& wall : scene.walls) {
+    const int a = wall.axis;
+    const int lo = wall.side < 0 ? 0 : pad + cells[a];
+    const int hi = wall.side < 0 ? pad : grid.nodes[a] - 1;
+    std::vector<int> nodes;
+    for (int n = 0; n < static_cast<int>(grid.size()); ++n) {
+      const int i = grid.multi(n)[a];
+      if (i >= lo && i <= hi) nodes.push_back(n);
+    }
+    wall_nodes_.push_back(std::move(nodes));
+  }
+  wall_impulse_.assign(scene.walls.size(), Eigen::Vector3d::Zero());
+  for (std::size_t p = 0; p < particles.size(); ++p) {
+    max_speed_ = std::max(max_speed_, particles.velocity[p].norm());
+  }
+}
+
+template <int D>
+void Solver<D>::fill_bodies() {
+  // Particles sit at the centres of the ppc^D sub-cells of every grid cell inside the body.
+  const double h = scene_.spacing;
+  struct Seed {
+    Vec<D> x;
+    int body;
+  };
+  std::vector<Seed> seeds;
+  for (std::size_t b = 0; b < scene_.bodies.size(); ++b) {
+    const BodySpec& body = scene_.bodies[b];
+    const int n = body.particles_per_cell;
+    Vec<D> lo, hi;
+    if (body.shape == BodySpec::Shape::box) {
+      lo = to_vec<D>(body.min);
+      hi = to_vec<D>(body.max);
+    } else {
+      lo = to_vec<D>(body.center).array() - body.radius;
+      hi = to_vec<D>(body.center).array() + body.radius;
+    }
+    Index<D> first, count;
+    for (int d = 0; d < D; ++d) {
+      first[d] = static_cast<int>(std::floor((lo[d] - scene_.box_min[d]) / h * n));
+      const int last = static_cast<int>(std::ceil((hi[d] - scene_.box_min[d]) / h * n));
+      count[d] = std::max(0, last - first[d]);
+    }
+    const long total = count.template cast<long>().prod();
+    for (long k = 0; k < total; ++k) {
+      long rest = k;
+      Vec<D> x;
+      for (int d = D - 1; d >= 0; --d) {
+        const long i = first[d] + rest % count[d];
+        rest /= count[d];
+        x[d] = scene_.box_min[d] + (static_cast<double>(i) + 0.5) * h / n;
+      }
+      if (inside<D>(body, x)) seeds.push_back({x, static_cast<int>(b)});
+    }
+  }
+  // Group by material so the constitutive update is dispatched once per group.
+  std::stable_sort(seeds.begin(), seeds.end(), [&](const Seed& a, const Seed& b) {
+    return scene_.bodies[a.body].material < scene_.bodies[b.body].material;
+  });
+  particles.resize(seeds.size());
+  for (std::size_t p = 0; p < seeds.size(); ++p) {
+    const BodySpec& body = scene_.bodies[seeds[p].body];
+    const int n = body.particles_per_cell;
+    const double volume = std::pow(h / n, D);
+    particles.position[p] = seeds[p].x;
+    particles.velocity[p] = to_vec<D>(body.velocity);
+    if (body.velocity_sine) {
+      const auto& sine = *body.velocity_sine;
+      particles.velocity[p] += to_vec<D>(sine.amplitude) *
+                               std::sin(sine.wavenumber * (seeds[p].x[sine.axis] - sine.origin));
+    }
+    particles.mass[p] = density(scene_.materials[body.material].model) * volume;
+    particles.volume0[p] = volume;
+    particles.half_width[p] = 0.5 / n;
+    particles.material[p] = body.material;
+    particles.body[p] = seeds[p].body;
+  }
+  groups_.clear();
+  for (std::size_t m = 0; m < scene_.materials.size(); ++m) {
+    const auto lo = std::lower_bound(particles.material.begin(), particles.material.end(),
+                                     static_cast<int>(m));
+    const auto hi = std::upper_bound(lo, particles.material.end(), static_cast<int>(m));
+    if (lo != hi) {
+      groups_.emplace_back(lo - particles.material.begin(), hi - particles.material.begin());
+    }
+  }
+}
+
+template <int D>
+double Solver<D>::stable_dt(double cfl) const {
+  return cfl * grid.h / (max_wave_speed(scene_) + max_speed_);
+}
+
+template <int D>
+void Solver<D>::step(double dt) {
+  particles_to_grid();
+  update_grid(dt);
+  apply_walls(dt);
+  grid_to_particles(dt);
+}
+
+// Scatter mass and momentum (APIC adds m_p C_p (x_I - x_p), Jiang et al. 2015 eq. 12) and, with
+// forces, f_I = -V_p sigma_p grad N_I + m_p N_I b_p.
+template <int D>
+template <class Shape>
+void Solver<D>::scatter(bool with_force) {
+  auto& P = particles;
+  const bool apic = scene_.transfer == Transfer::apic;
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+    const double m = P.mass[p];
+    const Vec<D> v = P.velocity[p];
+    const Mat<D> C = apic ? P.affine[p] : Mat<D>::Zero();
+    if (with_force) {
+      const Mat<D> vs = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p];
+      const Vec<D> mb = m * body_acceleration_[P.body[p]];
+      st.for_each(grid, [&](int node, double N, const Vec<D>& dN, const Vec<D>& dx) {
+        grid.mass[node] += N * m;
+        grid.momentum[node] += N * m * (v + C * dx);
+        grid.force[node] += vs * dN + N * mb;
+      });
+    } else {
+      st.for_each(grid, [&](int node, double N, const Vec<D>& /*dN*/, const Vec<D>& dx) {
+        grid.momentum[node] += N * m * (v + C * dx);
+      });
+    }
+  }
+}
+
+template <int D>
+void Solver<D>::particles_to_grid() {
+  grid.clear();
+  dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true); });
+}
+
+template <int D>
+void Solver<D>::update_grid(double dt) {
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, grid.size(), 4096), [&](const auto& r) {
+    for (std::size_t n = r.begin(); n != r.end(); ++n) {
+      const double m = grid.mass[n];
+      if (m > mass_threshold_) {
+        grid.velocity[n] = grid.momentum[n] / m;
+        grid.velocity_new[n] = grid.velocity[n] + dt * grid.force[n] / m;
+      } else {
+        grid.velocity[n].setZero();
+        grid.velocity_new[n].setZero();
+      }
+    }
+  });
+}
+
+template <int D>
+void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record, double /*dt*/) {
+  for (std::size_t w = 0; w < scene_.walls.size(); ++w) {
+    const BoxWall& wall = scene_.walls[w];
+    Vec<D> normal = Vec<D>::Zero();
+    normal[wall.axis] = wall.side < 0 ? 1.0 : -1.0;
+    Vec<D> impulse = Vec<D>::Zero();
+    std::visit(
+        [&](const auto& condition) {
+          for (const int n : wall_nodes_[w]) {
+            const double m = grid.mass[n];
+            if (m <= mass_threshold_) continue;
+            const Vec<D> before = velocity[n];
+            velocity[n] = constrain_velocity<D>(condition, wall.contact.separable, normal, before);
+            impulse += m * (velocity[n] - before);
+          }
+        },
+        wall.contact.condition);
+    if (record) wall_impulse_[w] += pad3<D>(impulse);
+  }
+}
+
+template <int D>
+void Solver<D>::apply_walls(double dt) {
+  constrain_walls(grid.velocity_new, true, dt);
+}
+
+template <int D>
+void Solver<D>::reset_wall_impulses() {
+  std::fill(wall_impulse_.begin(), wall_impulse_.end(), Eigen::Vector3d::Zero());
+}
+
+// Interpolation of a grid velocity field at one particle. Nodes below the mass threshold carry
+// no velocity, so they are treated as moving with the particle: sums run over active nodes only,
+// the value is renormalised by the active weight, and gradients use sum_I (v_I - v_p) grad N_I
+// (valid because sum_I grad N_I = 0). Without this a particle whose stencil touches an empty
+// node (a free surface, a particle on a grid line) sees a spurious gradient -v/h.
+template <int D>
+struct GridSample {
+  Vec<D> value = Vec<D>::Zero();     ///< sum N v / sum N
+  Vec<D> increment = Vec<D>::Zero();  ///< sum N (v_new - v), for FLIP
+  Mat<D> gradient = Mat<D>::Zero();  ///< sum (v - value) grad N^T
+  Mat<D> moment = Mat<D>::Zero();    ///< sum N (v - value) (x_I - x_p)^T, for APIC B_p
+};
+
+template <int D, class Shape>
+GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
+                          const std::vector<Vec<D>>& v,
+                          const std::type_identity_t<std::vector<Vec<D>>>* v_old,
+                          double threshold) {
+  double weight = 0.0;
+  Vec<D> grad_sum = Vec<D>::Zero(), dx_sum = Vec<D>::Zero();
+  GridSample<D> s;
+  st.for_each(grid, [&](int node, double N, const Vec<D>& dN, const Vec<D>& dx) {
+    if (grid.mass[node] <= threshold) return;
+    const Vec<D>& vn = v[node];
+    weight += N;
+    s.value += N * vn;
+    if (v_old) s.increment += N * (vn - (*v_old)[node]);
+    s.gradient += vn * dN.transpose();
+    grad_sum += dN;
+    if constexpr (std::is_same_v<Shape, BSpline2Shape>) {
+      s.moment += N * vn * dx.transpose();
+      dx_sum += N * dx;
+    }
+  });
+  if (weight <= 0.0) return {};
+  s.value /= weight;
+  s.gradient -= s.value * grad_sum.transpose();
+  if constexpr (std::is_same_v<Shape, BSpline2Shape>) s.moment -= s.value * dx_sum.transpose();
+  return s;
+}
+
+// Gather the new velocity and the displacement at x_p^n. APIC keeps C_p = B_p D_p^{-1} with
+// D_p = h^2/4 I for the quadratic B-spline (Jiang et al. 2015 eq. 10); for the linear kernel
+// B_p D_p^{-1} = sum_I v_I grad N_I^T (ibid., section 5.3), which is also used for GIMP: both are
+// exact for affine fields. USL also takes the velocity gradient here.
+template <int D>
+template <class Shape>
+void Solver<D>::gather(double dt) {
+  auto& P = particles;
+  const bool apic = scene_.transfer == Transfer::apic;
+  const bool usl = scene_.update == UpdateScheme::usl;
+  const double alpha = scene_.flip_blend;
+  const double inv_d = 4.0 * grid.inv_h * grid.inv_h;
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
+    for (std::size_t p = r.begin(); p != r.end(); ++p) {
+      const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+      const GridSample<D> s =
+          sample_grid(grid, st, grid.velocity_new, apic ? nullptr : &grid.velocity, mass_threshold_);
+      if (apic) {
+        P.velocity[p] = s.value;
+        if constexpr (std::is_same_v<Shape, BSpline2Shape>) {
+          P.affine[p] = s.moment * inv_d;
+        } else {
+          P.affine[p] = s.gradient;
+        }
+      } else {
+        P.velocity[p] = alpha * (P.velocity[p] + s.increment) + (1.0 - alpha) * s.value;
+      }
+      P.displacement[p] = dt * s.value;
+      if (usl) P.velocity_gradient[p] = s.gradient;
+    }
+  });
+}
+
+template <int D>
+template <class Shape>
+void Solver<D>::gather_velocity_gradient() {
+  auto& P = particles;
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
+    for (std::size_t p = r.begin(); p != r.end(); ++p) {
+      const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+      P.velocity_gradient[p] = sample_grid(grid, st, grid.velocity, nullptr, mass_threshold_).gradient;
+    }
+  });
+}
+
+template <int D>
+void Solver<D>::grid_to_particles(double dt) {
+  dispatch_shape(scene_.shape, [&](auto shape) {
+    using Shape = decltype(shape);
+    gather<Shape>(dt);
+    if (scene_.update == UpdateScheme::musl) {
+      // MUSL (Sulsky et al. 1995): map the updated particle momenta back to the grid at x_p^n
+      // and take the strain rate from that smoother field.
+      std::fill(grid.momentum.begin(), grid.momentum.end(), Vec<D>::Zero());
+      scatter<Shape>(false);
+      for (std::size_t n = 0; n < grid.size(); ++n) {
+        const double m = grid.mass[n];
+        grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
+      }
+      constrain_walls(grid.velocity, false, dt);
+      gather_velocity_gradient<Shape>();
+    }
+  });
+  update_stress(dt);
+  advect_and_check();
+}
+
+template <int D>
+void Solver<D>::update_stress(double dt) {
+  auto& P = particles;
+  for (const auto& [begin, end] : groups_) {
+    std::visit(
+        [&, b = begin, e = end](const auto& material) {
+          tbb::parallel_for(tbb::blocked_range<std::size_t>(b, e, 1024), [&](const auto& r) {
+            for (std::size_t p = r.begin(); p != r.end(); ++p) {
+              mpm::update_stress<D>(material, P.velocity_gradient[p], dt,
+                                    P.deformation_gradient[p], P.stress[p]);
+            }
+          });
+        },
+        scene_.materials[P.material[begin]].model);
+  }
+}
+
+// Move the particles, track the fastest one for the CFL step, and find the first particle that
+// went bad (non-finite, inverted, outside the grid) so the run can stop with its name.
+template <int D>
+void Solver<D>::advect_and_check() {
+  auto& P = particles;
+  const double lo_g = 1.0;
+  const Vec<D> hi_g = (grid.nodes.template cast<double>().array() - 2.0).matrix();
+  struct Scan {
+    double max_speed = 0.0;
+    std::size_t first_bad = static_cast<std::size_t>(-1);
+  };
+  const Scan scan = tbb::parallel_reduce(
+      tbb::blocked_range<std::size_t>(0, P.size(), 2048), Scan{},
+      [&](const auto& r, Scan s) {
+        for (std::size_t p = r.begin(); p != r.end(); ++p) {
+          P.position[p] += P.displacement[p];
+          const double speed = P.velocity[p].norm();
+          const Vec<D> xg = (P.position[p] - grid.origin) * grid.inv_h;
+          const bool ok = std::isfinite(speed) && std::isfinite(P.stress[p].sum()) &&
+                          P.deformation_gradient[p].determinant() > 0.0 &&
+                          (xg.array() >= lo_g).all() && (xg.array() <= hi_g.array()).all();
+          if (!ok) s.first_bad = std::min(s.first_bad, p);
+          s.max_speed = std::max(s.max_speed, speed);
+        }
+        return s;
+      },
+      [](Scan a, const Scan& b) {
+        a.max_speed = std::max(a.max_speed, b.max_speed);
+        a.first_bad = std::min(a.first_bad, b.first_bad);
+        return a;
+      });
+  max_speed_ = scan.max_speed;
+  if (scan.first_bad == static_cast<std::size_t>(-1)) return;
+
+  const std::size_t p = scan.first_bad;
+  std::ostringstream what;
+  what << "particle " << p << " (material \"" << scene_.materials[P.material[p]].name
+       << "\", body \"" << scene_.bodies[P.body[p]].name << "\"): ";
+  const double J = P.deformation_gradient[p].determinant();
+  if (!std::isfinite(P.velocity[p].norm())) {
+    what << "velocity is not finite " << format_vec<D>(P.velocity[p]);
+  } else if (!std::isfinite(P.stress[p].sum())) {
+    what << "stress is not finite";
+  } else if (!(J > 0.0)) {
+    what << "deformation gradient inverted (det F = " << J << ")";
+  } else {
+    what << "left the grid at x = " << format_vec<D>(P.position[p]) << " (grid box "
+         << format_vec<D>(to_vec<D>(scene_.box_min)) << " to "
+         << format_vec<D>(to_vec<D>(scene_.box_max)) << ")";
+  }
+  fault_ = what.str();
+}
+
+template <int D>
+Energies Solver<D>::energies() const {
+  const auto& P = particles;
+  Energies e;
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    e.kinetic += 0.5 * P.mass[p] * P.velocity[p].squaredNorm();
+    e.gravity -= P.mass[p] * gravity_.dot(P.position[p]);
+  }
+  for (const auto& [begin, end] : groups_) {
+    std::visit(
+        [&, b = begin, en = end](const auto& material) {
+          for (std::size_t p = b; p < en; ++p) {
+            e.strain += strain_energy<D>(material, P.deformation_gradient[p], P.stress[p],
+                                         P.volume0[p]);
+          }
+        },
+        scene_.materials[P.material[begin]].model);
+  }
+  return e;
+}
+
+template <int D>
+Eigen::Vector3d Solver<D>::momentum() const {
+  Vec<D> total = Vec<D>::Zero();
+  for (std::size_t p = 0; p < particles.size(); ++p) {
+    total += particles.mass[p] * particles.velocity[p];
+  }
+  return pad3<D>(total);
+}
+
+template <int D>
+ParticleFrame Solver<D>::frame(double time, std::int64_t step) const {
+  const auto& P = particles;
+  ParticleFrame f;
+  f.time = time;
+  f.step = step;
+  f.count = P.size();
+  f.position.resize(3 * f.count);
+  f.velocity.resize(3 * f.count);
+  f.stress.assign(9 * f.count, 0.0);
+  f.mass = P.mass;
+  f.volume.resize(f.count);
+  f.material = P.material;
+  f.body = P.body;
+  for (std::size_t p = 0; p < f.count; ++p) {
+    const Eigen::Vector3d x = pad3<D>(P.position[p]);
+    const Eigen::Vector3d v = pad3<D>(P.velocity[p]);
+    for (int d = 0; d < 3; ++d) {
+      f.position[3 * p + d] = x[d];
+      f.velocity[3 * p + d] = v[d];
+    }
+    for (int i = 0; i < D; ++i) {
+      for (int j = 0; j < D; ++j) f.stress[9 * p + 3 * i + j] = P.stress[p](i, j);
+    }
+    f.volume[p] = P.volume0[p] * P.deformation_gradient[p].determinant();
+  }
+  return f;
+}
+
+std::unique_ptr<Simulation> make_simulation(const Scene& scene) {
+  switch (scene.dimension) {
+    case 1:
+      return std::make_unique<Solver<1>>(scene);
+    case 2:
+      return std::make_unique<Solver<2>>(scene);
+    default:
+      return std::make_unique<Solver<3>>(scene);
+  }
+}
+
+template class Solver<1>;
+template class Solver<2>;
+template class Solver<3>;
+
+}  // namespace mpm
