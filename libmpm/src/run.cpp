@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <fstream>
 #include <iostream>
+#include <sstream>
 
 #include <nlohmann/json.hpp>
 
@@ -22,6 +23,13 @@ using Clock = std::chrono::steady_clock;
 
 double seconds_since(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+/// Shortest readable form of a number (6 significant digits): 1.97e-06, not 0.000002.
+std::string num(double value) {
+  std::ostringstream s;
+  s << value;
+  return s.str();
 }
 
 std::string clock_text(double seconds) {
@@ -55,8 +63,8 @@ class Progress {
       const int decile = static_cast<int>(fraction * 10.0 + 1e-9);
       if (!force && decile <= last_decile_) return;
       last_decile_ = decile;
-      std::fprintf(stderr, "%5.1f%%  t=%.6g  step %ld  elapsed %s  ETA %s\n", 100.0 * fraction,
-                   t, step, clock_text(elapsed).c_str(), clock_text(eta).c_str());
+      std::fprintf(stderr, "%5.1f%%  t=%.6g  step %ld  elapsed %s  ETA %s\n", 100.0 * fraction, t,
+                   step, clock_text(elapsed).c_str(), clock_text(eta).c_str());
     }
     std::fflush(stderr);
   }
@@ -90,8 +98,8 @@ class History {
   void row(double t, long step, double dt, const Simulation& sim, double elapsed) {
     const Energies e = sim.energies();
     const Eigen::Vector3d p = sim.momentum();
-    out_ << t << ',' << step << ',' << dt << ',' << e.kinetic << ',' << e.strain << ','
-         << e.gravity << ',' << e.total();
+    out_ << t << ',' << step << ',' << dt << ',' << e.kinetic << ',' << e.strain << ',' << e.gravity
+         << ',' << e.total();
     for (int d = 0; d < dim_; ++d) out_ << ',' << p[d];
     for (const auto& impulse : sim.wall_impulses()) {
       for (int d = 0; d < dim_; ++d) out_ << ',' << (elapsed > 0 ? -impulse[d] / elapsed : 0.0);
@@ -116,7 +124,8 @@ void write_json_atomically(const std::filesystem::path& file, const nlohmann::js
 }
 
 nlohmann::json energy_json(const Energies& e) {
-  return {{"kinetic", e.kinetic}, {"strain", e.strain}, {"gravity", e.gravity}, {"total", e.total()}};
+  return {
+      {"kinetic", e.kinetic}, {"strain", e.strain}, {"gravity", e.gravity}, {"total", e.total()}};
 }
 
 }  // namespace
@@ -154,7 +163,6 @@ int run_scene(const Scene& scene, const RunOptions& options) {
 
   const double end = scene.end_time;
   const double eps = 1e-12 * end;
-  const double c_max = max_wave_speed(scene);
   double t = 0.0;
   long step = 0;
   double dt = 0.0;
@@ -163,6 +171,12 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   double next_history = scene.history_interval;
   double min_dt = std::numeric_limits<double>::infinity(), max_dt = 0.0;
   std::vector<std::string> warnings;
+  if (scene.shape == ShapeKind::linear && scene.transfer == Transfer::apic) {
+    warnings.emplace_back(
+        "APIC with the linear kernel takes the affine matrix from nearly empty nodes at full "
+        "weight and is prone to the cell-crossing instability; prefer gimp or bspline2");
+  }
+  for (const auto& w : warnings) std::cerr << "mpm: warning: " << w << '\n';
   std::optional<std::string> failure;
   Progress progress(end, options.quiet);
 
@@ -176,9 +190,8 @@ int run_scene(const Scene& scene, const RunOptions& options) {
         // A fixed step must stay below the CFL limit as the material speeds up.
         const double limit = sim->stable_dt(1.0);
         if (dt > limit) {
-          failure = "step " + std::to_string(step) + ", t = " + std::to_string(t) +
-                    ": fixed time step " + std::to_string(dt) +
-                    " is above the CFL limit h/(c + |v|max) = " + std::to_string(limit);
+          failure = "step " + std::to_string(step) + ", t = " + num(t) + ": fixed time step " +
+                    num(dt) + " is above the CFL limit h/(c + |v|max) = " + num(limit);
           break;
         }
       } else {
@@ -192,8 +205,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       min_dt = std::min(min_dt, dt);
       max_dt = std::max(max_dt, dt);
       if (sim->fault()) {
-        failure = "step " + std::to_string(step) + ", t = " + std::to_string(t) + ": " +
-                  *sim->fault();
+        failure = "step " + std::to_string(step) + ", t = " + num(t) + ": " + *sim->fault();
         break;
       }
       if (scene.history_interval == 0.0 || t >= next_history - eps || t >= end - eps) {
@@ -218,7 +230,6 @@ int run_scene(const Scene& scene, const RunOptions& options) {
     return kExitIo;
   }
   progress.update(t, step, true);
-  (void)c_max;
 
   const double wall_seconds = seconds_since(wall_start);
   nlohmann::json summary = {

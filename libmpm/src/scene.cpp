@@ -71,8 +71,8 @@ class Reader {
                   std::optional<double> fallback = std::nullopt) {
     const double value = number(key, fallback);
     if (value < lo || value > hi || (open_hi && value == hi)) {
-      fail_at(child(key), "expected a number in [" + fmt(lo) + ", " + fmt(hi) + (open_hi ? ")" : "]") +
-                              ", got " + fmt(value));
+      fail_at(child(key), "expected a number in [" + fmt(lo) + ", " + fmt(hi) +
+                              (open_hi ? ")" : "]") + ", got " + fmt(value));
     }
     return value;
   }
@@ -135,8 +135,8 @@ class Reader {
     Eigen::VectorXd v(dim);
     for (int d = 0; d < dim; ++d) {
       if (!j[d].is_number() || !std::isfinite(j[d].get<double>())) {
-        fail_at(child(key) + "/" + std::to_string(d), "expected a finite number, got " +
-                                                          describe(j[d]));
+        fail_at(child(key) + "/" + std::to_string(d),
+                "expected a finite number, got " + describe(j[d]));
       }
       v[d] = j[d].get<double>();
     }
@@ -185,8 +185,8 @@ Material read_material(Reader& r, int dim) {
   const double rho = r.positive("density");
   const double E = r.positive("youngs_modulus");
   // The 1D bar is in uniaxial stress and does not use nu; 2D/3D need it.
-  const double nu = dim == 1 ? r.in_range("poisson_ratio", -1.0, 0.5, true, 0.0)
-                             : r.number("poisson_ratio");
+  const double nu =
+      dim == 1 ? r.in_range("poisson_ratio", -1.0, 0.5, true, 0.0) : r.number("poisson_ratio");
   if (!(nu > -1.0 && nu < 0.5)) {
     r.fail_at(r.child("poisson_ratio"),
               "expected a Poisson ratio in (-1, 0.5) (0.5 is incompressible: lambda is infinite), "
@@ -345,7 +345,8 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
     grid.finish();
   }
 
-  const std::string shape = root.choice("shape_function", {"linear", "gimp", "bspline2"}, "bspline2");
+  const std::string shape =
+      root.choice("shape_function", {"linear", "gimp", "bspline2"}, "bspline2");
   scene.shape = shape == "linear" ? ShapeKind::linear
                 : shape == "gimp" ? ShapeKind::gimp
                                   : ShapeKind::bspline2;
@@ -412,10 +413,10 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
       // Explicit MPM is stable for dt <= h / c (CFL number 1) at best.
       const double limit = scene.spacing / max_wave_speed(scene);
       if (*scene.fixed_dt > limit) {
-        time.fail_at(time.child("dt"), "time step " + Reader::fmt(*scene.fixed_dt) +
-                                           " is above the stability limit h/c = " +
-                                           Reader::fmt(limit) + " (CFL number " +
-                                           Reader::fmt(*scene.fixed_dt / limit) + " > 1)");
+        time.fail_at(time.child("dt"),
+                     "time step " + Reader::fmt(*scene.fixed_dt) +
+                         " is above the stability limit h/c = " + Reader::fmt(limit) +
+                         " (CFL number " + Reader::fmt(*scene.fixed_dt / limit) + " > 1)");
       }
     }
     time.finish();
@@ -449,8 +450,8 @@ Scene load_scene(const std::filesystem::path& file) {
     // e.what() is "[json.exception.parse_error.101] parse error at line 3, column 5: ..."
     std::string what = e.what();
     const auto at = what.find("parse error");
-    throw SceneError(file.string() + ": invalid JSON: " +
-                     (at == std::string::npos ? what : what.substr(at)));
+    throw SceneError(file.string() +
+                     ": invalid JSON: " + (at == std::string::npos ? what : what.substr(at)));
   }
   return parse_scene(doc, file);
 }

@@ -66,12 +66,21 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
     const int a = wall.axis;
     const int lo = wall.side < 0 ? 0 : pad + cells[a];
     const int hi = wall.side < 0 ? pad : grid.nodes[a] - 1;
+    const int wall_index = wall.side < 0 ? pad : pad + cells[a];
     std::vector<int> nodes;
+    std::vector<std::pair<int, int>> ghosts;
     for (int n = 0; n < static_cast<int>(grid.size()); ++n) {
-      const int i = grid.multi(n)[a];
-      if (i >= lo && i <= hi) nodes.push_back(n);
+      Index<D> i = grid.multi(n);
+      if (i[a] < lo || i[a] > hi) continue;
+      if (i[a] == wall_index || wall.contact.separable) {
+        nodes.push_back(n);
+      } else {
+        i[a] = 2 * wall_index - i[a];
+        ghosts.emplace_back(n, grid.linear(i));
+      }
     }
     wall_nodes_.push_back(std::move(nodes));
+    wall_ghosts_.push_back(std::move(ghosts));
   }
   wall_impulse_.assign(scene.walls.size(), Eigen::Vector3d::Zero());
   for (std::size_t p = 0; p < particles.size(); ++p) {
@@ -141,8 +150,8 @@ void Solver<D>::fill_bodies() {
   }
   groups_.clear();
   for (std::size_t m = 0; m < scene_.materials.size(); ++m) {
-    const auto lo = std::lower_bound(particles.material.begin(), particles.material.end(),
-                                     static_cast<int>(m));
+    const auto lo =
+        std::lower_bound(particles.material.begin(), particles.material.end(), static_cast<int>(m));
     const auto hi = std::upper_bound(lo, particles.material.end(), static_cast<int>(m));
     if (lo != hi) {
       groups_.emplace_back(lo - particles.material.begin(), hi - particles.material.begin());
@@ -229,6 +238,22 @@ void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record, doub
             velocity[n] = constrain_velocity<D>(condition, wall.contact.separable, normal, before);
             impulse += m * (velocity[n] - before);
           }
+          // A bonded wall is a symmetry plane of the velocity field: ghost nodes take the
+          // mirror image of the node inside (normal component odd; tangential odd for sticky,
+          // even otherwise), so wide kernels (B-spline, GIMP) see the wall where it is rather
+          // than a wall smeared over the ghost layer.
+          for (const auto& [ghost, mirror] : wall_ghosts_[w]) {
+            const double m = grid.mass[ghost];
+            if (m <= mass_threshold_) continue;
+            const Vec<D> before = velocity[ghost];
+            const Vec<D>& inside = velocity[mirror];
+            if constexpr (std::is_same_v<std::decay_t<decltype(condition)>, Sticky>) {
+              velocity[ghost] = -inside;
+            } else {
+              velocity[ghost] = inside - 2.0 * inside.dot(normal) * normal;
+            }
+            impulse += m * (velocity[ghost] - before);
+          }
         },
         wall.contact.condition);
     if (record) wall_impulse_[w] += pad3<D>(impulse);
@@ -252,10 +277,10 @@ void Solver<D>::reset_wall_impulses() {
 // node (a free surface, a particle on a grid line) sees a spurious gradient -v/h.
 template <int D>
 struct GridSample {
-  Vec<D> value = Vec<D>::Zero();     ///< sum N v / sum N
+  Vec<D> value = Vec<D>::Zero();      ///< sum N v / sum N
   Vec<D> increment = Vec<D>::Zero();  ///< sum N (v_new - v), for FLIP
-  Mat<D> gradient = Mat<D>::Zero();  ///< sum (v - value) grad N^T
-  Mat<D> moment = Mat<D>::Zero();    ///< sum N (v - value) (x_I - x_p)^T, for APIC B_p
+  Mat<D> gradient = Mat<D>::Zero();   ///< sum (v - value) grad N^T
+  Mat<D> moment = Mat<D>::Zero();     ///< sum N (v - value) (x_I - x_p)^T, for APIC B_p
 };
 
 template <int D, class Shape>
@@ -301,8 +326,8 @@ void Solver<D>::gather(double dt) {
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
     for (std::size_t p = r.begin(); p != r.end(); ++p) {
       const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
-      const GridSample<D> s =
-          sample_grid(grid, st, grid.velocity_new, apic ? nullptr : &grid.velocity, mass_threshold_);
+      const GridSample<D> s = sample_grid(grid, st, grid.velocity_new,
+                                          apic ? nullptr : &grid.velocity, mass_threshold_);
       if (apic) {
         P.velocity[p] = s.value;
         if constexpr (std::is_same_v<Shape, BSpline2Shape>) {
@@ -326,7 +351,8 @@ void Solver<D>::gather_velocity_gradient() {
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
     for (std::size_t p = r.begin(); p != r.end(); ++p) {
       const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
-      P.velocity_gradient[p] = sample_grid(grid, st, grid.velocity, nullptr, mass_threshold_).gradient;
+      P.velocity_gradient[p] =
+          sample_grid(grid, st, grid.velocity, nullptr, mass_threshold_).gradient;
     }
   });
 }
@@ -361,8 +387,8 @@ void Solver<D>::update_stress(double dt) {
         [&, b = begin, e = end](const auto& material) {
           tbb::parallel_for(tbb::blocked_range<std::size_t>(b, e, 1024), [&](const auto& r) {
             for (std::size_t p = r.begin(); p != r.end(); ++p) {
-              mpm::update_stress<D>(material, P.velocity_gradient[p], dt,
-                                    P.deformation_gradient[p], P.stress[p]);
+              mpm::update_stress<D>(material, P.velocity_gradient[p], dt, P.deformation_gradient[p],
+                                    P.stress[p]);
             }
           });
         },
@@ -435,8 +461,8 @@ Energies Solver<D>::energies() const {
     std::visit(
         [&, b = begin, en = end](const auto& material) {
           for (std::size_t p = b; p < en; ++p) {
-            e.strain += strain_energy<D>(material, P.deformation_gradient[p], P.stress[p],
-                                         P.volume0[p]);
+            e.strain +=
+                strain_energy<D>(material, P.deformation_gradient[p], P.stress[p], P.volume0[p]);
           }
         },
         scene_.materials[P.material[begin]].model);

@@ -14,7 +14,7 @@ struct Grid {
   Vec<D> origin = Vec<D>::Zero();  ///< position of node (0,...,0)
   double h = 1.0;                  ///< node spacing
   double inv_h = 1.0;
-  Index<D> nodes = Index<D>::Ones();  ///< nodes per axis
+  Index<D> nodes = Index<D>::Ones();   ///< nodes per axis
   Index<D> stride = Index<D>::Ones();  ///< linear index = sum_d i_d * stride_d; last axis fastest
 
   std::vector<double> mass;
@@ -83,8 +83,7 @@ struct Stencil {
   template <class F>
   void for_each(const Grid<D>& g, F&& f) const {
     if constexpr (D == 1) {
-      for (int i = 0; i < S; ++i)
-        f(base_linear + i, w[0][i], Vec<1>(dw[0][i]), Vec<1>(dx[0][i]));
+      for (int i = 0; i < S; ++i) f(base_linear + i, w[0][i], Vec<1>(dw[0][i]), Vec<1>(dx[0][i]));
     } else if constexpr (D == 2) {
       for (int i = 0; i < S; ++i) {
         for (int j = 0; j < S; ++j) {

@@ -77,7 +77,8 @@ void update_stress(const LinearElastic& m, const Mat<D>& L, double dt, Mat<D>& F
     sigma += m.youngs_modulus * strain_increment;
   } else {
     const Lame l = lame(m.youngs_modulus, m.poisson_ratio);
-    sigma += l.lambda * strain_increment.trace() * Mat<D>::Identity() + 2.0 * l.mu * strain_increment;
+    sigma +=
+        l.lambda * strain_increment.trace() * Mat<D>::Identity() + 2.0 * l.mu * strain_increment;
   }
 }
 
@@ -113,7 +114,8 @@ double strain_energy(const LinearElastic& m, const Mat<D>& F, const Mat<D>& sigm
 }
 
 template <int D>
-double strain_energy(const NeoHookean& m, const Mat<D>& F, const Mat<D>& /*sigma*/, double volume0) {
+double strain_energy(const NeoHookean& m, const Mat<D>& F, const Mat<D>& /*sigma*/,
+                     double volume0) {
   const double J = F.determinant();
   const double log_j = std::log(J);
   if constexpr (D == 1) {

@@ -13,9 +13,9 @@ template <int D>
 struct Particles {
   std::vector<Vec<D>> position;
   std::vector<Vec<D>> velocity;
-  std::vector<Mat<D>> affine;    ///< APIC velocity matrix C_p (zero for PIC/FLIP)
+  std::vector<Mat<D>> affine;  ///< APIC velocity matrix C_p (zero for PIC/FLIP)
   std::vector<Mat<D>> deformation_gradient;
-  std::vector<Mat<D>> stress;    ///< Cauchy stress
+  std::vector<Mat<D>> stress;  ///< Cauchy stress
   std::vector<double> mass;
   std::vector<double> volume0;     ///< initial volume; current volume = det(F) * volume0
   std::vector<double> half_width;  ///< uGIMP half particle size in grid units (fixed)

@@ -61,8 +61,9 @@ struct Scene {
   ShapeKind shape = ShapeKind::bspline2;
   UpdateScheme update = UpdateScheme::musl;
   Transfer transfer = Transfer::apic;
-  double flip_blend = 1.0;        ///< FLIP fraction of the PIC/FLIP blend
-  double mass_threshold = 1e-9;   ///< nodes lighter than this times the mean particle mass are inactive
+  double flip_blend = 1.0;  ///< FLIP fraction of the PIC/FLIP blend
+  double mass_threshold =
+      1e-9;  ///< nodes lighter than this times the mean particle mass are inactive
   Eigen::VectorXd gravity;
   double end_time = 0.0;
   double cfl = 0.5;

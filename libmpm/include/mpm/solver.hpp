@@ -101,6 +101,8 @@ class Solver final : public Simulation {
   std::vector<Vec<D>> body_acceleration_;  ///< gravity + body force, per body
   std::vector<std::pair<std::size_t, std::size_t>> groups_;
   std::vector<std::vector<int>> wall_nodes_;  ///< grid nodes on or beyond each wall
+  /// For bonded (non-separable) walls: (ghost node beyond the wall, its mirror image inside).
+  std::vector<std::vector<std::pair<int, int>>> wall_ghosts_;
   std::vector<Eigen::Vector3d> wall_impulse_;
   double mass_threshold_ = 0.0;
   double max_speed_ = 0.0;

@@ -10,9 +10,9 @@
 
 namespace mpm {
 
-struct Sticky {};    ///< no relative motion while in contact
-struct Slip {};      ///< frictionless: only the normal component is removed
-struct Friction {    ///< Coulomb friction with coefficient mu
+struct Sticky {};  ///< no relative motion while in contact
+struct Slip {};    ///< frictionless: only the normal component is removed
+struct Friction {  ///< Coulomb friction with coefficient mu
   double mu = 0.0;
 };
 using WallCondition = std::variant<Sticky, Slip, Friction>;

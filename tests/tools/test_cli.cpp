@@ -1,0 +1,574 @@
+// End-to-end tests of the `mpm` command line: the built executable is run as a user would run it,
+// and its exit code, stderr and output directory are checked against the documented contract
+// (mpm/run.hpp: 0 done, 2 bad input with nothing written, 3 numerical fault with the output up to
+// the fault kept).
+
+#include <fcntl.h>
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <regex>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "mpm/output.hpp"
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+namespace {
+
+struct RunResult {
+  int exit_code = -1;  ///< the process exit status, or 128 + signal if it was killed
+  std::string out;     ///< stdout
+  std::string err;     ///< stderr
+};
+
+std::string slurp(std::FILE* f) {
+  std::string text;
+  std::rewind(f);
+  char buffer[4096];
+  std::size_t n = 0;
+  while ((n = std::fread(buffer, 1, sizeof buffer, f)) > 0) text.append(buffer, n);
+  return text;
+}
+
+/// Runs the built `mpm` with `args` (no shell, so paths need no quoting). stdout and stderr go to
+/// anonymous temporary files rather than pipes so a chatty child can never block on a full pipe.
+RunResult run_mpm(const std::vector<std::string>& args) {
+  RunResult result;
+  std::FILE* out = std::tmpfile();
+  std::FILE* err = std::tmpfile();
+  if (out == nullptr || err == nullptr) {
+    ADD_FAILURE() << "tmpfile() failed";
+    if (out != nullptr) std::fclose(out);
+    if (err != nullptr) std::fclose(err);
+    return result;
+  }
+  std::vector<std::string> argv_text{MPM_BINARY};
+  argv_text.insert(argv_text.end(), args.begin(), args.end());
+  std::vector<char*> argv;
+  for (auto& a : argv_text) argv.push_back(a.data());
+  argv.push_back(nullptr);
+
+  std::fflush(nullptr);
+  const pid_t pid = ::fork();
+  if (pid == 0) {
+    const int devnull = ::open("/dev/null", O_RDONLY);
+    if (devnull >= 0) ::dup2(devnull, STDIN_FILENO);
+    ::dup2(::fileno(out), STDOUT_FILENO);
+    ::dup2(::fileno(err), STDERR_FILENO);
+    ::execv(argv[0], argv.data());
+    ::_exit(127);  // exec failed; only async-signal-safe calls here
+  }
+  if (pid < 0) {
+    ADD_FAILURE() << "fork() failed";
+  } else {
+    int status = 0;
+    while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+    }
+    if (WIFEXITED(status)) {
+      result.exit_code = WEXITSTATUS(status);
+    } else if (WIFSIGNALED(status)) {
+      result.exit_code = 128 + WTERMSIG(status);
+    }
+  }
+  result.out = slurp(out);
+  result.err = slurp(err);
+  std::fclose(out);
+  std::fclose(err);
+  return result;
+}
+
+std::string read_text(const fs::path& file) {
+  std::ifstream in(file, std::ios::binary);
+  std::ostringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+void write_text(const fs::path& file, const std::string& text) {
+  std::ofstream out(file, std::ios::binary);
+  out << text;
+  ASSERT_TRUE(out.flush()) << "cannot write " << file;
+}
+
+bool contains(const std::string& text, const std::string& part) {
+  return text.find(part) != std::string::npos;
+}
+
+/// A small 2D scene that runs in a few dozen steps: one elastic block falling under gravity
+/// above a friction floor, with slip side walls. Tests break one thing in it at a time, so every
+/// other key stays valid and the error seen is the one provoked.
+json scene_2d() {
+  return json::parse(R"({
+    "name": "cli_block_2d",
+    "dimension": 2,
+    "grid": { "min": [0.0, 0.0], "max": [1.0, 1.0], "spacing": 0.1 },
+    "shape_function": "bspline2",
+    "scheme": { "update": "musl", "transfer": "apic" },
+    "gravity": [0.0, -9.81],
+    "materials": [
+      { "name": "rubber", "model": "neo_hookean", "density": 1000, "youngs_modulus": 1.0e6,
+        "poisson_ratio": 0.3 }
+    ],
+    "bodies": [
+      { "name": "block", "material": "rubber",
+        "shape": { "type": "box", "min": [0.3, 0.3], "max": [0.7, 0.7] },
+        "particles_per_cell": 2 }
+    ],
+    "walls": [
+      { "face": "ymin", "condition": "friction", "mu": 0.3 },
+      { "face": "xmin", "condition": "slip" },
+      { "face": "xmax", "condition": "slip" }
+    ],
+    "time": { "end": 0.05, "cfl": 0.5 },
+    "output": { "interval": 0.01 }
+  })");
+}
+
+/// A 1D bar moving so fast to the right that it leaves the grid within a few steps: no walls to
+/// stop it, and an end time it can never reach while still inside the box.
+json runaway_scene_1d() {
+  return json::parse(R"({
+    "name": "cli_runaway_1d",
+    "dimension": 1,
+    "grid": { "min": [0.0], "max": [1.0], "spacing": 0.1 },
+    "shape_function": "linear",
+    "scheme": { "update": "musl", "transfer": "flip", "flip_blend": 1.0 },
+    "materials": [
+      { "name": "foam", "model": "linear_elastic", "density": 1.0, "youngs_modulus": 1.0 }
+    ],
+    "bodies": [
+      { "name": "bar", "material": "foam",
+        "shape": { "type": "segment", "min": [0.4], "max": [0.6] },
+        "velocity": [100.0] }
+    ],
+    "time": { "end": 1.0 },
+    "output": { "interval": 0.001 }
+  })");
+}
+
+// Every test gets its own directory: ctest runs the tests of this file in parallel, and several
+// build trees may run ctest at once, so the name carries both the test name and the pid.
+class CommandLine : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
+    dir_ = fs::temp_directory_path() /
+           ("mpm_test_cli_" + std::string(info->name()) + "_" + std::to_string(::getpid()));
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+    scene_file_ = dir_ / "scene.json";
+    out_dir_ = dir_ / "out";
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  void write_scene(const json& scene) { write_text(scene_file_, scene.dump(2)); }
+
+  RunResult run_scene(std::vector<std::string> extra = {}) {
+    std::vector<std::string> args{"run", scene_file_.string(), "-o", out_dir_.string(), "-q"};
+    args.insert(args.end(), extra.begin(), extra.end());
+    return run_mpm(args);
+  }
+
+  /// The bad-input contract: exit code 2; exactly one line on stderr of the form
+  /// "mpm: FILE: /json/path: what was expected" (so the user can find the spot without
+  /// guessing); and no output directory, so nothing that looks like a result is left behind.
+  /// `json_path` is matched with its delimiters so "/grid" does not match "/grid/spacing".
+  void expect_rejected(const std::string& json_path, const std::vector<std::string>& expected) {
+    const RunResult r = run_scene();
+    EXPECT_EQ(r.exit_code, 2) << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << "stderr:\n" << r.err;
+    EXPECT_FALSE(r.err.empty() || r.err.back() != '\n') << "stderr:\n" << r.err;
+    EXPECT_TRUE(contains(r.err, scene_file_.string() + ": " + json_path + ": "))
+        << "expected file and JSON path '" << json_path << "' in: " << r.err;
+    for (const auto& part : expected) {
+      EXPECT_TRUE(contains(r.err, part)) << "expected '" << part << "' in: " << r.err;
+    }
+    EXPECT_FALSE(fs::exists(out_dir_)) << "bad input must not create " << out_dir_;
+  }
+
+  fs::path dir_, scene_file_, out_dir_;
+};
+
+// ---------------------------------------------------------------------------------------------
+// Bad scenes: one class of mistake per test.
+
+TEST_F(CommandLine, RejectsMissingRequiredKey) {
+  json scene = scene_2d();
+  scene.erase("grid");
+  write_scene(scene);
+  // The missing key belongs to the root object, so the path is the root and the key is named.
+  expect_rejected("/", {"missing required key", "'grid'"});
+}
+
+TEST_F(CommandLine, RejectsMisspelledGridKey) {
+  // A typo in a required key must not run with some default spacing; the message must point at
+  // the grid object and say which key it needs.
+  json scene = scene_2d();
+  scene["grid"].erase("spacing");
+  scene["grid"]["spacng"] = 0.1;
+  write_scene(scene);
+  expect_rejected("/grid", {"missing required key", "'spacing'"});
+}
+
+TEST_F(CommandLine, RejectsUnknownGridKey) {
+  // Every key the user wrote must mean something: an extra key is an error, not ignored.
+  json scene = scene_2d();
+  scene["grid"]["cells"] = 10;
+  write_scene(scene);
+  expect_rejected("/grid/cells", {"unknown key", "spacing"});
+}
+
+TEST_F(CommandLine, RejectsUnknownTopLevelKey) {
+  // "wals" instead of "walls" would silently drop every wall if unknown keys were ignored.
+  json scene = scene_2d();
+  scene["wals"] = scene["walls"];
+  scene.erase("walls");
+  write_scene(scene);
+  expect_rejected("/wals", {"unknown key", "walls"});
+}
+
+TEST_F(CommandLine, RejectsStringWhereNumberExpected) {
+  json scene = scene_2d();
+  scene["materials"][0]["density"] = "1000";
+  write_scene(scene);
+  expect_rejected("/materials/0/density", {"expected a number", "\"1000\""});
+}
+
+TEST_F(CommandLine, RejectsNegativeDensity) {
+  json scene = scene_2d();
+  scene["materials"][0]["density"] = -1000.0;
+  write_scene(scene);
+  expect_rejected("/materials/0/density", {"positive", "-1000"});
+}
+
+TEST_F(CommandLine, RejectsZeroSpacing) {
+  json scene = scene_2d();
+  scene["grid"]["spacing"] = 0.0;
+  write_scene(scene);
+  expect_rejected("/grid/spacing", {"positive"});
+}
+
+TEST_F(CommandLine, RejectsIncompressiblePoissonRatioIn2D) {
+  // nu = 0.5 makes the Lame constant lambda infinite: the wave speed and the time step are
+  // meaningless, so it must be refused up front rather than blow up in the first step.
+  json scene = scene_2d();
+  scene["materials"][0]["poisson_ratio"] = 0.5;
+  write_scene(scene);
+  expect_rejected("/materials/0/poisson_ratio", {"Poisson ratio", "0.5"});
+}
+
+TEST_F(CommandLine, RejectsBodyOutsideGrid) {
+  json scene = scene_2d();
+  scene["bodies"][0]["shape"]["max"] = {0.7, 1.2};
+  write_scene(scene);
+  expect_rejected("/bodies/0/shape", {"outside the grid box", "axis 1"});
+}
+
+TEST_F(CommandLine, RejectsUnknownMaterialName) {
+  json scene = scene_2d();
+  scene["bodies"][0]["material"] = "rubbr";
+  write_scene(scene);
+  expect_rejected("/bodies/0/material", {"\"rubbr\"", "/materials"});
+}
+
+TEST_F(CommandLine, RejectsInvalidShapeType) {
+  json scene = scene_2d();
+  scene["bodies"][0]["shape"]["type"] = "cylinder";
+  write_scene(scene);
+  // The message lists what the dimension allows (a 2D scene has disks, not spheres).
+  expect_rejected("/bodies/0/shape/type", {"\"cylinder\"", "box", "disk"});
+}
+
+TEST_F(CommandLine, RejectsVectorOfWrongLengthForDimension) {
+  // A 3D gravity vector in a 2D scene: the z component would be silently dropped otherwise.
+  json scene = scene_2d();
+  scene["gravity"] = {0.0, 0.0, -9.81};
+  write_scene(scene);
+  expect_rejected("/gravity", {"array of 2 numbers", "dimension 2"});
+}
+
+TEST_F(CommandLine, RejectsDuplicateWallFace) {
+  json scene = scene_2d();
+  scene["walls"].push_back({{"face", "xmin"}, {"condition", "sticky"}});
+  write_scene(scene);
+  expect_rejected("/walls/3/face", {"second wall", "xmin"});
+}
+
+TEST_F(CommandLine, RejectsFrictionCoefficientOnSlipWall) {
+  // "mu" on a slip wall suggests the user meant friction; running frictionless would mislead.
+  json scene = scene_2d();
+  scene["walls"][1]["mu"] = 0.3;
+  write_scene(scene);
+  expect_rejected("/walls/1/mu", {"friction"});
+}
+
+TEST_F(CommandLine, RejectsFixedTimeStepAboveCflLimit) {
+  // Wave speed of the rubber in 2D is about 37 m/s, so h/c is about 2.7e-3 s; 0.01 s is ~4x over.
+  json scene = scene_2d();
+  scene["time"]["dt"] = 0.01;
+  write_scene(scene);
+  expect_rejected("/time/dt", {"limit", "h/c", "0.01"});
+
+  // The limit quoted in the message must be the real one: a step just below it runs.
+  const RunResult r = run_scene();
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(r.err, m, std::regex(R"(h/c = ([0-9.eE+-]+))"))) << r.err;
+  const double limit = std::stod(m[1].str());
+  scene["time"]["dt"] = 0.9 * limit;
+  write_scene(scene);
+  const RunResult ok = run_scene();
+  EXPECT_EQ(ok.exit_code, 0) << ok.err;
+}
+
+TEST_F(CommandLine, RejectsInvalidJsonSyntax) {
+  // A trailing comma on line 3: the message must say where, since the scene is never shown.
+  write_text(scene_file_, "{\n  \"dimension\": 2,\n  \"name\": \"x\",\n}\n");
+  const RunResult r = run_scene();
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_TRUE(contains(r.err, scene_file_.string() + ": ")) << r.err;
+  EXPECT_TRUE(contains(r.err, "invalid JSON")) << r.err;
+  EXPECT_TRUE(std::regex_search(r.err, std::regex("line [0-9]+"))) << r.err;
+  EXPECT_FALSE(fs::exists(out_dir_));
+}
+
+TEST_F(CommandLine, RejectsMissingSceneFile) {
+  const RunResult r = run_scene();  // scene.json was never written
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_TRUE(contains(r.err, scene_file_.string())) << r.err;
+  EXPECT_TRUE(contains(r.err, "does not exist")) << r.err;
+  EXPECT_FALSE(fs::exists(out_dir_));
+}
+
+TEST_F(CommandLine, RejectsBoxExtentNotMultipleOfSpacing) {
+  // Walls sit on the box faces, which must be grid lines: 1.0 is not a whole number of 0.3 cells.
+  json scene = scene_2d();
+  scene["grid"]["spacing"] = 0.3;
+  write_scene(scene);
+  expect_rejected("/grid/spacing", {"whole number of cells", "0.3"});
+}
+
+// ---------------------------------------------------------------------------------------------
+// Command-line parsing.
+
+TEST_F(CommandLine, RequiresSubcommand) {
+  const RunResult r = run_mpm({});
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_TRUE(contains(r.err, "subcommand")) << r.err;
+}
+
+TEST_F(CommandLine, RejectsUnknownOption) {
+  write_scene(scene_2d());
+  const RunResult r =
+      run_mpm({"run", scene_file_.string(), "-o", out_dir_.string(), "--frobnicate"});
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_TRUE(contains(r.err, "--frobnicate")) << r.err;
+  EXPECT_FALSE(fs::exists(out_dir_)) << "a rejected command line must not run the scene";
+}
+
+TEST_F(CommandLine, RejectsThreadCountOutOfRange) {
+  write_scene(scene_2d());
+  const RunResult r = run_mpm({"run", scene_file_.string(), "-o", out_dir_.string(), "-j", "0"});
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_FALSE(fs::exists(out_dir_));
+}
+
+TEST_F(CommandLine, RequiresOutputDirectory) {
+  // Without -o there is nowhere safe to write; the scene must not be run into the cwd.
+  write_scene(scene_2d());
+  const RunResult r = run_mpm({"run", scene_file_.string()});
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_TRUE(contains(r.err, "--output")) << r.err;
+}
+
+TEST_F(CommandLine, PrintsHelp) {
+  const RunResult r = run_mpm({"--help"});
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_TRUE(contains(r.out, "Usage")) << r.out;
+  EXPECT_TRUE(contains(r.out, "run")) << r.out;
+}
+
+TEST_F(CommandLine, PrintsRunHelp) {
+  const RunResult r = run_mpm({"run", "--help"});
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_TRUE(contains(r.out, "Usage")) << r.out;
+  EXPECT_TRUE(contains(r.out, "--output")) << r.out;
+  EXPECT_TRUE(contains(r.out, "--overwrite")) << r.out;
+}
+
+TEST_F(CommandLine, PrintsVersion) {
+  const RunResult r = run_mpm({"--version"});
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_TRUE(std::regex_match(r.out, std::regex("mpm [0-9]+\\.[0-9]+\\.[0-9]+\n"))) << r.out;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Runs.
+
+TEST_F(CommandLine, RunsSmallScene) {
+  write_scene(scene_2d());
+  const RunResult r = run_scene({"-j", "1"});
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_EQ(r.err, "") << "--quiet and a clean scene: nothing to report";
+
+  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  EXPECT_EQ(summary.at("status"), "completed");
+  EXPECT_GT(summary.at("steps").get<long>(), 0);
+  EXPECT_FALSE(summary.contains("error"));
+  EXPECT_NEAR(summary.at("simulated_time").get<double>(), 0.05, 1e-12);
+
+  const std::string history = read_text(out_dir_ / "history.csv");
+  EXPECT_EQ(history.rfind("time,step,dt,kinetic", 0), 0u) << history.substr(0, 80);
+  // One row per step plus the header and the t = 0 row (history_interval defaults to every step).
+  EXPECT_EQ(std::count(history.begin(), history.end(), '\n'), summary.at("steps").get<long>() + 2);
+
+  EXPECT_TRUE(fs::exists(out_dir_ / "particles.xmf"));
+  ASSERT_TRUE(fs::exists(out_dir_ / "particles.h5"));
+  const std::size_t frames = mpm::count_frames(out_dir_ / "particles.h5");
+  EXPECT_GE(frames, 2u);
+  EXPECT_EQ(frames, summary.at("frames_written").get<std::size_t>());
+  const mpm::ParticleFrame last = mpm::read_frame(out_dir_ / "particles.h5", frames - 1);
+  EXPECT_EQ(last.count, summary.at("particles").get<std::size_t>());
+  EXPECT_NEAR(last.time, 0.05, 1e-12);
+}
+
+TEST_F(CommandLine, RefusesToOverwriteEarlierResult) {
+  write_scene(scene_2d());
+  ASSERT_EQ(run_scene().exit_code, 0);
+  std::map<fs::path, std::string> before;
+  std::map<fs::path, fs::file_time_type> stamps;
+  for (const auto& entry : fs::directory_iterator(out_dir_)) {
+    before[entry.path()] = read_text(entry.path());
+    stamps[entry.path()] = entry.last_write_time();
+  }
+  ASSERT_TRUE(before.count(out_dir_ / "summary.json"));
+
+  // Another scene into the same directory: without --overwrite the first result must survive.
+  json other = scene_2d();
+  other["time"]["end"] = 0.02;
+  write_scene(other);
+  const RunResult refused = run_scene();
+  EXPECT_EQ(refused.exit_code, 2) << refused.err;
+  EXPECT_EQ(std::count(refused.err.begin(), refused.err.end(), '\n'), 1) << refused.err;
+  EXPECT_TRUE(contains(refused.err, "--overwrite")) << refused.err;
+  EXPECT_TRUE(contains(refused.err, out_dir_.string())) << refused.err;
+  std::size_t after_count = 0;
+  for (const auto& entry : fs::directory_iterator(out_dir_)) {
+    ++after_count;
+    ASSERT_TRUE(before.count(entry.path())) << "new file " << entry.path();
+    EXPECT_EQ(read_text(entry.path()), before[entry.path()]) << entry.path() << " was changed";
+    EXPECT_EQ(entry.last_write_time(), stamps[entry.path()]) << entry.path() << " was rewritten";
+  }
+  EXPECT_EQ(after_count, before.size());
+
+  const RunResult replaced = run_scene({"--overwrite"});
+  EXPECT_EQ(replaced.exit_code, 0) << replaced.err;
+  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  EXPECT_EQ(summary.at("status"), "completed");
+  EXPECT_NEAR(summary.at("end_time").get<double>(), 0.02, 1e-12);
+}
+
+TEST_F(CommandLine, RefusesToOverwriteParticlesOfAnInterruptedRun) {
+  // A killed run leaves particles.h5 but no summary.json; its frames are still a result.
+  write_scene(scene_2d());
+  fs::create_directories(out_dir_);
+  write_text(out_dir_ / "particles.h5", "frames of a killed run");
+  const RunResult r = run_scene();
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_TRUE(contains(r.err, "--overwrite")) << r.err;
+  EXPECT_EQ(read_text(out_dir_ / "particles.h5"), "frames of a killed run");
+  EXPECT_FALSE(fs::exists(out_dir_ / "summary.json"));
+}
+
+TEST_F(CommandLine, ReportsBodyLeavingGridAsFault) {
+  write_scene(runaway_scene_1d());
+  const RunResult r = run_scene();
+  EXPECT_EQ(r.exit_code, 3) << r.err;
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_TRUE(contains(r.err, scene_file_.string())) << r.err;
+  EXPECT_TRUE(contains(r.err, "particle ")) << r.err;
+  EXPECT_TRUE(contains(r.err, "material \"foam\"")) << r.err;
+  EXPECT_TRUE(contains(r.err, "left the grid")) << r.err;
+
+  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  EXPECT_EQ(summary.at("status"), "failed");
+  ASSERT_TRUE(summary.contains("error"));
+  EXPECT_TRUE(contains(summary.at("error").get<std::string>(), "left the grid"));
+  EXPECT_LT(summary.at("simulated_time").get<double>(), summary.at("end_time").get<double>());
+
+  // Everything written before the fault is readable and finite, and ends before the fault.
+  const fs::path h5 = out_dir_ / "particles.h5";
+  const std::size_t frames = mpm::count_frames(h5);
+  EXPECT_GE(frames, 2u);
+  EXPECT_EQ(frames, summary.at("frames_written").get<std::size_t>());
+  double previous_time = -1.0;
+  for (std::size_t i = 0; i < frames; ++i) {
+    const mpm::ParticleFrame f = mpm::read_frame(h5, i);
+    EXPECT_EQ(f.count, summary.at("particles").get<std::size_t>());
+    EXPECT_GT(f.time, previous_time);
+    EXPECT_LE(f.time, summary.at("simulated_time").get<double>());
+    previous_time = f.time;
+    for (std::size_t p = 0; p < f.count; ++p) {
+      EXPECT_TRUE(std::isfinite(f.position[3 * p])) << "frame " << i << " particle " << p;
+    }
+  }
+  EXPECT_TRUE(fs::exists(out_dir_ / "particles.xmf"));
+}
+
+TEST_F(CommandLine, ReportsFixedTimeStepOutgrownByVelocityAsFault) {
+  // A steel bar (c = sqrt(E/rho) = 5048 m/s, h/c = 1.981e-6 s) moving at 50 m/s: the fixed step
+  // passes the load-time check against h/c but not the run-time one against h/(c + |v|) =
+  // 1.962e-6 s. Steps of microseconds are the normal case for metals, so the message must print
+  // the step and the limit with enough digits to tell them apart.
+  json scene = json::parse(R"({
+    "dimension": 1,
+    "grid": { "min": [0.0], "max": [1.0], "spacing": 0.01 },
+    "materials": [
+      { "name": "steel", "model": "linear_elastic", "density": 7850, "youngs_modulus": 2.0e11 }
+    ],
+    "bodies": [
+      { "name": "bar", "material": "steel",
+        "shape": { "type": "segment", "min": [0.2], "max": [0.8] }, "velocity": [-50.0] }
+    ],
+    "time": { "end": 1.0e-4, "dt": 1.97e-6 }
+  })");
+  write_scene(scene);
+  const RunResult r = run_scene();
+  EXPECT_EQ(r.exit_code, 3) << r.err;
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_TRUE(contains(r.err, scene_file_.string())) << r.err;
+  EXPECT_TRUE(contains(r.err, "CFL limit")) << r.err;
+
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(
+      r.err, m,
+      std::regex(R"(time step ([0-9.eE+-]+) is above the CFL limit [^=]*= ([0-9.eE+-]+))")))
+      << r.err;
+  const double dt = std::stod(m[1].str());
+  const double limit = std::stod(m[2].str());
+  EXPECT_NEAR(dt, 1.97e-6, 1e-3 * 1.97e-6) << "the step as given in the scene: " << r.err;
+  EXPECT_NEAR(limit, 0.01 / (std::sqrt(2.0e11 / 7850.0) + 50.0), 1e-3 * 1.96e-6) << r.err;
+  EXPECT_LT(limit, dt) << "the message must show why the step is too large: " << r.err;
+
+  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  EXPECT_EQ(summary.at("status"), "failed");
+  EXPECT_TRUE(contains(summary.value("error", ""), "CFL limit"));
+  EXPECT_GE(mpm::count_frames(out_dir_ / "particles.h5"), 1u) << "the initial state is kept";
+}
+
+}  // namespace
