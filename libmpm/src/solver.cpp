@@ -172,14 +172,37 @@ void Solver<D>::step(double dt) {
   grid_to_particles(dt);
 }
 
+// Counting sort of particle indices by slab (slab_width cells along axis 0). O(N), no
+// allocation once the buffers have grown.
+template <int D>
+void Solver<D>::bin_particles_into_slabs() {
+  const auto& P = particles;
+  const int slabs = grid.nodes[0] / slab_width + 2;
+  slab_start_.assign(slabs + 1, 0);
+  slab_of_.resize(P.size());
+  slab_order_.resize(P.size());
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    const double xg = (P.position[p][0] - grid.origin[0]) * grid.inv_h;
+    const int slab = std::clamp(static_cast<int>(std::floor(xg / slab_width)), 0, slabs - 1);
+    slab_of_[p] = slab;
+    ++slab_start_[slab + 1];
+  }
+  for (int k = 0; k < slabs; ++k) slab_start_[k + 1] += slab_start_[k];
+  slab_fill_.assign(slab_start_.begin(), slab_start_.end() - 1);
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    slab_order_[slab_fill_[slab_of_[p]]++] = static_cast<int>(p);
+  }
+}
+
 // Scatter mass and momentum (APIC adds m_p C_p (x_I - x_p), Jiang et al. 2015 eq. 12) and, with
-// forces, f_I = -V_p sigma_p grad N_I + m_p N_I b_p.
+// forces, f_I = -V_p sigma_p grad N_I + m_p N_I b_p. Slabs of one parity run in parallel: a
+// particle's stencil reaches at most 2 nodes past its slab, and slab_width = 4 > 2 + 1.
 template <int D>
 template <class Shape>
 void Solver<D>::scatter(bool with_force) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
-  for (std::size_t p = 0; p < P.size(); ++p) {
+  auto scatter_one = [&](std::size_t p) {
     const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
     const double m = P.mass[p];
     const Vec<D> v = P.velocity[p];
@@ -197,12 +220,20 @@ void Solver<D>::scatter(bool with_force) {
         grid.momentum[node] += N * m * (v + C * dx);
       });
     }
+  };
+  const int slabs = static_cast<int>(slab_start_.size()) - 1;
+  for (int parity = 0; parity < 2; ++parity) {
+    tbb::parallel_for(0, (slabs - parity + 1) / 2, [&](int k) {
+      const int slab = 2 * k + parity;
+      for (int i = slab_start_[slab]; i < slab_start_[slab + 1]; ++i) scatter_one(slab_order_[i]);
+    });
   }
 }
 
 template <int D>
 void Solver<D>::particles_to_grid() {
   grid.clear();
+  bin_particles_into_slabs();
   dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true); });
 }
 
@@ -283,10 +314,13 @@ struct GridSample {
   Mat<D> moment = Mat<D>::Zero();     ///< sum N (v - value) (x_I - x_p)^T, for APIC B_p
 };
 
-template <int D, class Shape>
+/// What sample_grid() accumulates besides the value (compile-time, so each pass pays only for
+/// what its scheme uses).
+enum SampleParts : unsigned { kIncrement = 1U, kGradient = 2U, kMoment = 4U };
+
+template <unsigned Parts, int D, class Shape>
 GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
-                          const std::vector<Vec<D>>& v,
-                          const std::type_identity_t<std::vector<Vec<D>>>* v_old,
+                          const std::vector<Vec<D>>& v, const std::vector<Vec<D>>& v_old,
                           double threshold) {
   double weight = 0.0;
   Vec<D> grad_sum = Vec<D>::Zero(), dx_sum = Vec<D>::Zero();
@@ -296,18 +330,20 @@ GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
     const Vec<D>& vn = v[node];
     weight += N;
     s.value += N * vn;
-    if (v_old) s.increment += N * (vn - (*v_old)[node]);
-    s.gradient += vn * dN.transpose();
-    grad_sum += dN;
-    if constexpr (std::is_same_v<Shape, BSpline2Shape>) {
+    if constexpr ((Parts & kIncrement) != 0) s.increment += N * (vn - v_old[node]);
+    if constexpr ((Parts & kGradient) != 0) {
+      s.gradient += vn * dN.transpose();
+      grad_sum += dN;
+    }
+    if constexpr ((Parts & kMoment) != 0) {
       s.moment += N * vn * dx.transpose();
       dx_sum += N * dx;
     }
   });
   if (weight <= 0.0) return {};
   s.value /= weight;
-  s.gradient -= s.value * grad_sum.transpose();
-  if constexpr (std::is_same_v<Shape, BSpline2Shape>) s.moment -= s.value * dx_sum.transpose();
+  if constexpr ((Parts & kGradient) != 0) s.gradient -= s.value * grad_sum.transpose();
+  if constexpr ((Parts & kMoment) != 0) s.moment -= s.value * dx_sum.transpose();
   return s;
 }
 
@@ -321,27 +357,46 @@ void Solver<D>::gather(double dt) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
   const bool usl = scene_.update == UpdateScheme::usl;
+  constexpr bool bspline = std::is_same_v<Shape, BSpline2Shape>;
   const double alpha = scene_.flip_blend;
   const double inv_d = 4.0 * grid.inv_h * grid.inv_h;
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
-    for (std::size_t p = r.begin(); p != r.end(); ++p) {
-      const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
-      const GridSample<D> s = sample_grid(grid, st, grid.velocity_new,
-                                          apic ? nullptr : &grid.velocity, mass_threshold_);
-      if (apic) {
-        P.velocity[p] = s.value;
-        if constexpr (std::is_same_v<Shape, BSpline2Shape>) {
-          P.affine[p] = s.moment * inv_d;
+  auto pass = [&](auto parts) {
+    constexpr unsigned Parts = decltype(parts)::value;
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
+      for (std::size_t p = r.begin(); p != r.end(); ++p) {
+        const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+        const GridSample<D> s =
+            sample_grid<Parts>(grid, st, grid.velocity_new, grid.velocity, mass_threshold_);
+        if constexpr ((Parts & kIncrement) != 0) {
+          P.velocity[p] = alpha * (P.velocity[p] + s.increment) + (1.0 - alpha) * s.value;
         } else {
-          P.affine[p] = s.gradient;
+          P.velocity[p] = s.value;
+          if constexpr (bspline) {
+            P.affine[p] = s.moment * inv_d;
+          } else {
+            P.affine[p] = s.gradient;
+          }
         }
-      } else {
-        P.velocity[p] = alpha * (P.velocity[p] + s.increment) + (1.0 - alpha) * s.value;
+        P.displacement[p] = dt * s.value;
+        if constexpr ((Parts & kGradient) != 0) {
+          if (usl) P.velocity_gradient[p] = s.gradient;
+        }
       }
-      P.displacement[p] = dt * s.value;
-      if (usl) P.velocity_gradient[p] = s.gradient;
+    });
+  };
+  using std::integral_constant;
+  if (apic) {
+    constexpr unsigned affine = bspline ? kMoment : kGradient;
+    if (usl) {
+      pass(integral_constant<unsigned, affine | kGradient>{});
+    } else {
+      pass(integral_constant<unsigned, affine>{});
     }
-  });
+  } else if (usl) {
+    pass(integral_constant<unsigned, kIncrement | kGradient>{});
+  } else {
+    pass(integral_constant<unsigned, kIncrement>{});
+  }
 }
 
 template <int D>
@@ -352,7 +407,7 @@ void Solver<D>::gather_velocity_gradient() {
     for (std::size_t p = r.begin(); p != r.end(); ++p) {
       const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
       P.velocity_gradient[p] =
-          sample_grid(grid, st, grid.velocity, nullptr, mass_threshold_).gradient;
+          sample_grid<kGradient>(grid, st, grid.velocity, grid.velocity, mass_threshold_).gradient;
     }
   });
 }

@@ -95,6 +95,7 @@ class Solver final : public Simulation {
   void update_stress(double dt);
   void advect_and_check();
   void fill_bodies();
+  void bin_particles_into_slabs();
 
   Scene scene_;
   Vec<D> gravity_;
@@ -104,6 +105,13 @@ class Solver final : public Simulation {
   /// For bonded (non-separable) walls: (ghost node beyond the wall, its mirror image inside).
   std::vector<std::vector<std::pair<int, int>>> wall_ghosts_;
   std::vector<Eigen::Vector3d> wall_impulse_;
+  /// Particle indices binned by slab of `slab_width` cells along axis 0. Slabs of one parity
+  /// never touch the same nodes, so particle-to-grid runs them in parallel without atomics.
+  static constexpr int slab_width = 4;
+  std::vector<int> slab_order_;
+  std::vector<int> slab_start_;
+  std::vector<int> slab_of_;
+  std::vector<int> slab_fill_;
   double mass_threshold_ = 0.0;
   double max_speed_ = 0.0;
   std::optional<std::string> fault_;
