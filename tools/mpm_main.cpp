@@ -5,6 +5,7 @@
 #include <tbb/global_control.h>
 #include <CLI/CLI.hpp>
 
+#include "commands.hpp"
 #include "mpm/run.hpp"
 #include "mpm/scene.hpp"
 
@@ -24,6 +25,43 @@ int main(int argc, char** argv) {
   run->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
       ->check(CLI::Range(1, 1024));
 
+  mpm::tools::PrepArgs prep_args;
+  CLI::App* prep = app.add_subcommand(
+      "prep", "Turn a wall or terrain surface mesh into a boundary package (layer + coupling)");
+  prep->add_option("mesh", prep_args.mesh, "Surface mesh (any format assimp reads)")->required();
+  prep->add_option("-o,--output", prep_args.output, "Boundary package OUT.h5 (+ OUT.xmf)")
+      ->required();
+  prep->add_option("--spacing", prep_args.spacing, "Standard grid spacing h")
+      ->required()
+      ->check(CLI::PositiveNumber);
+  prep->add_option("--thickness", prep_args.options.layer.thickness,
+                   "Layer thickness t (default h)")
+      ->check(CLI::PositiveNumber);
+  prep->add_option("--layers", prep_args.options.layer.layers, "Sub-layers")
+      ->check(CLI::Range(1, 16));
+  prep->add_option("--origin", prep_args.origin, "Grid box minimum X,Y,Z (default: fits the mesh)")
+      ->delimiter(',')
+      ->expected(3);
+  prep->add_option("--box-max", prep_args.box_max, "Grid box maximum X,Y,Z (with --origin)")
+      ->delimiter(',')
+      ->expected(3);
+  prep->add_option("--shape", prep_args.shape, "Shape function of the standard grid")
+      ->check(CLI::IsMember({"linear", "gimp", "bspline2"}));
+  prep->add_option("--scale", prep_args.options.import.scale, "Scale the mesh (units)")
+      ->check(CLI::PositiveNumber);
+  std::vector<double> translate, rotate;
+  prep->add_option("--translate", translate, "Translate the mesh X,Y,Z")
+      ->delimiter(',')
+      ->expected(3);
+  prep->add_option("--rotate", rotate, "Rotate the mesh about x, y, z (degrees)")
+      ->delimiter(',')
+      ->expected(3);
+  bool no_remesh = false;
+  prep->add_flag("--no-remesh", no_remesh, "Keep the mesh as it is (no isotropic remeshing)");
+  prep->add_flag("--closed", prep_args.options.repair.require_closed,
+                 "The surface must be closed (a structure or source volume)");
+  prep->add_flag("--overwrite", prep_args.overwrite, "Replace an existing package");
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -37,6 +75,13 @@ int main(int argc, char** argv) {
         tbb::global_control::max_allowed_parallelism, static_cast<std::size_t>(threads));
   }
 
+  if (*prep) {
+    if (!translate.empty())
+      prep_args.options.import.translation = {translate[0], translate[1], translate[2]};
+    if (!rotate.empty()) prep_args.options.import.rotation_deg = {rotate[0], rotate[1], rotate[2]};
+    prep_args.options.remesh = !no_remesh;
+    return mpm::tools::prep_command(prep_args);
+  }
   if (*run) {
     try {
       const mpm::Scene scene = mpm::load_scene(scene_file);

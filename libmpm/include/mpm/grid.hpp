@@ -9,6 +9,10 @@
 
 namespace mpm {
 
+/// Ghost node layers the solver adds beyond each face of the scene's grid box, so the widest
+/// kernel (B-spline, GIMP: 3 nodes) never leaves the grid and walls have nodes to mirror into.
+inline constexpr int kGhostLayers = 2;
+
 template <int D>
 struct Grid {
   Vec<D> origin = Vec<D>::Zero();  ///< position of node (0,...,0)

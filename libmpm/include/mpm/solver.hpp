@@ -53,7 +53,7 @@ std::unique_ptr<Simulation> make_simulation(const Scene& scene);
 template <int D>
 class Solver final : public Simulation {
  public:
-  static constexpr int pad = 2;  ///< ghost nodes beyond each box face (B-spline/GIMP support)
+  static constexpr int pad = kGhostLayers;
 
   explicit Solver(const Scene& scene);
 
