@@ -508,8 +508,9 @@ Fit fit_offsets(const Wall<Dim>& wall, const LayerOptions& options) {
       const auto w = facet_points(wall, static_cast<std::size_t>(blocking[v]));
       Point<Dim> centre = Point<Dim>::Zero();
       for (const auto& x : w) centre += x / Dim;
-      fail("cannot extrude the layer at point " + std::to_string(v) + " " +
-           format_point<Dim>(wall.points[v]) + ": its column meets the layer of the wall near " +
+      fail("cannot extrude the layer at " + wall.describe(wall.point_facets[v].front()) +
+           ": the column of its vertex " + std::to_string(v) + " " +
+           format_point<Dim>(wall.points[v]) + " meets the layer of the wall near " +
            format_point<Dim>(centre) + " at " + format_number(fit.scale[v]) + " of the thickness " +
            format_number(t) +
            ", below min_thickness_fraction (a crease too sharp for this thickness, or walls "

@@ -327,7 +327,7 @@ LayerLocator::Impl::Impl(const BoundaryGrid& boundary) {
     for (int k = 0; k < nodes_per_cell; ++k) {
       const auto x = boundary.nodes.row(boundary.cells(static_cast<Eigen::Index>(c), k));
       for (int i = 0; i < dim; ++i) {
-        corners[c][static_cast<std::size_t>(3 * k + i)] = x(i);
+        corners[c][3 * static_cast<std::size_t>(k) + static_cast<std::size_t>(i)] = x(i);
         lo[i] = std::min(lo[i], x(i) - frame_origin[i]);
         hi[i] = std::max(hi[i], x(i) - frame_origin[i]);
         scale = std::max(scale, std::abs(x(i)));

@@ -607,7 +607,9 @@ TEST(BoundaryLayer, CubeEdgesAndCornersFromBothSides) {
       }
       const double own_distance = std::min(top[own], 1 - top[own]);
       for (int i = 0; i < 3; ++i) {
-        if (i != own) EXPECT_LT(own_distance, std::min(top[i], 1 - top[i])) << x.transpose();
+        if (i != own) {
+          EXPECT_LT(own_distance, std::min(top[i], 1 - top[i])) << x.transpose();
+        }
       }
     }
   }
@@ -655,6 +657,31 @@ TEST(BoundaryLayer, PartsFollowTheirTriangles) {
   for (Eigen::Index c = 0; c < grid.cells.rows(); ++c) {
     EXPECT_EQ(grid.cell_part(c), mesh.part(c % mesh.F.rows()));
   }
+}
+
+TEST(BoundaryLayer, UnreferencedVerticesAndUnweldedSeams) {
+  // Wall nodes are the referenced vertices in their original order; an unused vertex gets none.
+  TriangleMesh mesh = planar_square(2, 1.0);
+  const auto used = mesh.V.rows();
+  mesh.V.conservativeResize(used + 1, 3);
+  mesh.V.row(used) << 5.0, 5.0, 5.0;
+  LayerOptions options;
+  options.thickness = 0.1;
+  LayerReport report;
+  BoundaryGrid grid = mpmgeom::extrude_layer(mesh, options, &report);
+  EXPECT_EQ(grid.nodes.rows(), 2 * used);
+  EXPECT_TRUE(grid.nodes.topRows(used) == mesh.V.topRows(used));
+  // Two triangles that share an edge only by position (not welded): each has its own columns,
+  // and the coincident points do not limit each other.
+  TriangleMesh seam;
+  seam.V.resize(6, 3);
+  seam.V << 0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 0, 0, 1, 1, 0, 0, 1, 0;
+  seam.F.resize(2, 3);
+  seam.F << 0, 1, 2, 3, 4, 5;
+  grid = mpmgeom::extrude_layer(seam, options, &report);
+  EXPECT_EQ(report.columns_shrunk, 0u);
+  EXPECT_NEAR(report.volume, 0.1, 1e-15);
+  EXPECT_EQ(grid.part_names, std::vector<std::string>{"wall"});
 }
 
 TEST(BoundaryLayer, RejectsInvalidOptionsAndDefectiveWalls) {
