@@ -13,6 +13,10 @@
 // Scaling all offsets of one column by f maps it onto its own slice zeta in [0, f]. A column that
 // first folds (or pinches) at zeta* is therefore repaired by scaling its vertices' offsets by
 // f <= zeta*; see fit_offsets() for how shared vertices are reconciled.
+//
+// Columns that share no cell can still cross (from the two sides of a concave crease, or from
+// two walls facing each other) while every cell stays positive. medial_limits() stops each
+// vertex's column before it gets closer to another part of the wall than to its own facets.
 
 #include "mpmgeom/boundary_grid.hpp"
 
@@ -420,8 +424,9 @@ std::vector<double> medial_limits(const Wall<Dim>& wall, double thickness,
         const double a = (x - w[0]).dot(normal), b = n.dot(normal);
         auto plane_gap = [&](double s) { return std::abs(a + b * s) - own * s; };
         double lowest = std::min(plane_gap(0.0), plane_gap(height));
-        if (b != 0.0 && -a / b > 0.0 && -a / b < height)
+        if (b != 0.0 && -a / b > 0.0 && -a / b < height) {
           lowest = std::min(lowest, plane_gap(-a / b));
+        }
         if (lowest >= 0.0) return;  // the gap is at least the plane gap
       }
       // Sphere tracing: the gap changes by at most (1 + own) per unit of s, so stepping by
@@ -480,7 +485,8 @@ void grade_thickness(const Wall<Dim>& wall, double thickness, std::vector<double
 }
 
 /// Offsets that keep det J > 0 in every column, and above kPoorPinch of its wall value where the
-/// allowed shrinking permits. Start from the full thickness; in each round, every pinched or
+/// allowed shrinking permits. Start from the full thickness capped by the medial limits (an
+/// error if one is below min_thickness_fraction) and graded; in each round, every pinched or
 /// folded column asks for its vertices' offsets to be scaled by the height zeta* at which its
 /// det J falls to kTargetPinch of the wall value (scaling a column's offsets by zeta* maps it onto
 /// its own slice [0, zeta*]); a vertex shared by several columns takes the smallest request,
@@ -543,8 +549,9 @@ Fit fit_offsets(const Wall<Dim>& wall, const LayerOptions& options) {
         if (ratio < worst_ratio) worst_ratio = ratio, worst = f;
       }
       double height = 1.0;
-      for (const auto& edge : q)
+      for (const auto& edge : q) {
         height = std::min(height, edge.first_crossing(kTargetPinch * edge.c0));
+      }
       for (const int v : wall.facets[f]) {
         const double wanted = std::max(options.min_thickness_fraction, fit.scale[v] * height);
         if (wanted < next[v]) next[v] = wanted;
@@ -601,8 +608,8 @@ BoundaryGrid lay_out(const Wall<Dim>& wall, const Fit& fit, const LayerOptions& 
   for (int k = 0; k < K; ++k) {
     for (Eigen::Index f = 0; f < F; ++f) {
       for (int i = 0; i < Dim; ++i) {
-        grid.cells(k * F + f, i) = k * P + wall.facets[f][i];
-        grid.cells(k * F + f, Dim + i) = (k + 1) * P + wall.facets[f][i];
+        grid.cells(k * F + f, i) = static_cast<int>(k * P) + wall.facets[f][i];
+        grid.cells(k * F + f, Dim + i) = static_cast<int>((k + 1) * P) + wall.facets[f][i];
       }
       grid.cell_layer(k * F + f) = k;
     }
@@ -612,7 +619,7 @@ BoundaryGrid lay_out(const Wall<Dim>& wall, const Fit& fit, const LayerOptions& 
   for (Eigen::Index f = 0; f < F; ++f) {
     for (int i = 0; i < Dim; ++i) {
       grid.wall_facets(f, i) = wall.facets[f][i];
-      grid.interface_facets(f, i) = K * P + wall.facets[f][i];
+      grid.interface_facets(f, i) = static_cast<int>(K * P) + wall.facets[f][i];
     }
   }
   return grid;

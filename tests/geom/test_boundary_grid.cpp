@@ -615,6 +615,41 @@ TEST(BoundaryLayer, CubeEdgesAndCornersFromBothSides) {
   }
 }
 
+TEST(BoundaryLayer, FacingWallsCloserThanTwiceTheThicknessStopShortOfTheMidplane) {
+  // A floor and a ceiling (another part) a gap g < 2 t apart, both with the material between
+  // them: each layer stops at 0.9 of the midplane height instead of running into the other.
+  const double gap = 0.15, t = 0.1;
+  const TriangleMesh floor = planar_square(6, 1.0);
+  TriangleMesh both;
+  both.V.resize(2 * floor.V.rows(), 3);
+  both.V << floor.V, floor.V;
+  both.V.bottomRows(floor.V.rows()).col(2).setConstant(gap);
+  both.F.resize(2 * floor.F.rows(), 3);
+  both.F.topRows(floor.F.rows()) = floor.F;
+  const Eigen::MatrixX3i ceiling =
+      floor.F.rowwise().reverse().array() + static_cast<int>(floor.V.rows());
+  both.F.bottomRows(floor.F.rows()) = ceiling;
+  both.part = Eigen::VectorXi::Zero(both.F.rows());
+  both.part.tail(floor.F.rows()).setOnes();
+  both.part_names = {"floor", "ceiling"};
+  LayerOptions options;
+  options.thickness = t;
+  LayerReport report;
+  const BoundaryGrid grid = mpmgeom::extrude_layer(both, options, &report);
+  expect_consistent_layout(grid, report);
+  EXPECT_EQ(report.columns_shrunk, static_cast<std::size_t>(both.V.rows()));
+  // The midplane lies at g / 2; the limit is taken with a relative tolerance of 1e-3 on the
+  // distances, so it is within 1e-3 of that.
+  const double height = 0.9 * gap / 2.0;
+  const auto P = both.V.rows();
+  for (Eigen::Index v = 0; v < P; ++v) {
+    const double top = grid.nodes(P + v, 2), wall = both.V(v, 2);
+    EXPECT_NEAR(std::abs(top - wall), height, 1e-3 * height) << "point " << v;
+  }
+  EXPECT_NEAR(report.volume, 2.0 * height, 2e-3 * height);
+  EXPECT_GT(min_corner_jacobian(grid), 0.0);
+}
+
 TEST(BoundaryLayer, SubLayersSplitEachColumnWithoutChangingTheLayer) {
   const TriangleMesh mesh = icosphere(3, 1.0, true);
   LayerOptions one;

@@ -4,10 +4,6 @@
 // cell definitions of boundary_grid.hpp. Inside/outside is checked against CGAL's
 // Side_of_triangle_mesh (exact predicates) and, for boxes, against the analytic answer.
 
-// CGAL is header-only here: Boost.Multiprecision instead of GMP, so that this test needs no
-// extra link libraries.
-#define CGAL_DISABLE_GMP 1
-
 #include "mpmgeom/locator.hpp"
 
 #include <CGAL/AABB_face_graph_triangle_primitive.h>

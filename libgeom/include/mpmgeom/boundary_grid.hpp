@@ -120,32 +120,37 @@ struct LayerReport {
 /// leans towards one side is replaced by the centre of the cone of its triangles' normals (the
 /// direction furthest inside all their material sides: the bisector of a crease).
 ///
-/// Wall point v is offset by s_v * t along its normal, s_v = 1 unless the layer would fold or
-/// pinch: a column (a wall triangle extruded over the whole thickness) in which det J along a
-/// vertical edge drops to <= 0 (a fold) or below 5 % of its value at the wall is lowered to the
-/// height zeta* where it reaches 10 % of that value, by scaling the offsets of its three
-/// vertices by zeta* (never below options.min_thickness_fraction); around shrunk vertices the
-/// offset is then capped to grow by at most its distance along the wall (Phi rises at <= 45
+/// Wall point v is offset by s_v * t along its normal. s_v is first capped so that the column
+/// stops at 0.9 of the height where it would get closer to another part of the wall than to its
+/// own triangles (the medial axis: across a concave crease or corner, or facing another wall
+/// closer than 2 t, columns would otherwise cross without any cell folding), then lowered where
+/// the layer would fold or pinch: a column (a wall triangle extruded over the whole thickness) in
+/// which det J along a vertical edge drops to <= 0 (a fold) or below 5 % of its value at the wall
+/// is lowered to the height zeta* where it reaches 10 % of that value, by scaling the offsets of
+/// its three vertices by zeta* (never below options.min_thickness_fraction); around shrunk vertices
+/// the offset is then capped to grow by at most its distance along the wall (Phi rises at <= 45
 /// degrees, no deep notch); all columns are rechecked until none asks for more. A fold that
 /// remains is an error, a pinch that remains is accepted. det J is checked over the whole of
 /// each cell (exactly: it is quadratic in zeta, linear in (r, s)), not only at the corners.
 ///
-/// Unreferenced vertices of wall.V get no node. Parts come from wall.part (all 0 if empty,
-/// named "wall" if wall.part_names is empty). Overlap between distant parts of the layer (two
-/// walls closer than t, a thin plate) is not detected.
+/// The medial test follows the columns' vertical edges (the vertex rays), not their side faces.
+///
+/// Unreferenced vertices of wall.V get no node; the others keep their order (so wall node i is
+/// wall.V row i for a mesh from load_mesh()). Parts come from wall.part (all 0 if empty, named
+/// "wall" if wall.part_names is empty).
 ///
 /// Throws std::invalid_argument for invalid options; MeshError ("boundary layer: ...") for an
 /// empty mesh, bad indices, non-finite coordinates, degenerate triangles, vertices without a
-/// normal (inconsistent orientation), or a fold that min_thickness_fraction does not allow to
-/// remove ("cannot extrude the layer at triangle k near (x, y, z): ...").
+/// normal (inconsistent orientation), or a fold or medial limit that min_thickness_fraction does
+/// not allow to resolve ("cannot extrude the layer at triangle k near (x, y, z): ...").
 BoundaryGrid extrude_layer(const TriangleMesh& wall, const LayerOptions& options,
                            LayerReport* report = nullptr);
 
 /// 2D: quads extruded from a polyline (#P x 2 points) to its left (the material side when the
 /// polyline runs with the material on its left); closed joins the last point to the first (do
 /// not repeat the first point at the end). Point normals are the normalised sums of the unit
-/// left normals of their segments (corner bisectors), smoothed, and offsets are shrunk where
-/// quads fold, as in extrude_layer (the bilinear map's det J is linear, so corners decide).
+/// left normals of their segments (corner bisectors), smoothed, and offsets are limited and
+/// shrunk as in extrude_layer (the bilinear map's det J is linear, so its corners decide).
 /// Gamma and Phi are 2-node segments running in the polyline's direction. Throws MeshError for
 /// fewer than 2 points (3 if closed), non-finite points, zero-length segments or a fold that
 /// cannot be removed.
