@@ -75,6 +75,8 @@ int prep_command(const PrepArgs& args) {
     std::printf("  jacobian     min %.4g (relative to the nominal cell)\n", r.min_jacobian);
     std::printf("  shrunk       %zu columns, by at most %.1f%%\n", r.columns_shrunk,
                 100.0 * r.max_shrink);
+    std::printf("  creases      %zu vertex normals set to the bisector of a crease\n",
+                r.crease_normals);
     std::printf("  Gamma area   %.6g\n  Phi area     %.6g\n  layer volume %.6g\n", r.wall_measure,
                 r.interface_measure, r.volume);
     std::printf("  multipliers  %zu on Phi, %zu on Gamma\n",

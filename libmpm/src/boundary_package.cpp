@@ -441,6 +441,7 @@ void save_boundary_package(const BoundaryPackage& p, const std::filesystem::path
     w.integer(report.get(), "cells", static_cast<long long>(p.report.cells));
     w.integer(report.get(), "nodes", static_cast<long long>(p.report.nodes));
     w.integer(report.get(), "columns_shrunk", static_cast<long long>(p.report.columns_shrunk));
+    w.integer(report.get(), "crease_normals", static_cast<long long>(p.report.crease_normals));
     w.number(report.get(), "max_shrink", p.report.max_shrink);
     w.number(report.get(), "min_jacobian", p.report.min_jacobian);
     w.number(report.get(), "volume", p.report.volume);
@@ -524,6 +525,7 @@ BoundaryPackage load_boundary_package(const std::filesystem::path& h5_path) {
   p.report.cells = static_cast<std::size_t>(r.integer(report.get(), "cells"));
   p.report.nodes = static_cast<std::size_t>(r.integer(report.get(), "nodes"));
   p.report.columns_shrunk = static_cast<std::size_t>(r.integer(report.get(), "columns_shrunk"));
+  p.report.crease_normals = static_cast<std::size_t>(r.integer(report.get(), "crease_normals"));
   p.report.max_shrink = r.number(report.get(), "max_shrink");
   p.report.min_jacobian = r.number(report.get(), "min_jacobian");
   p.report.volume = r.number(report.get(), "volume");
