@@ -83,14 +83,14 @@ const char* const kAxis[] = {"x", "y", "z"};
 /// are what the material pushes on each wall, averaged over the interval (impulse / time).
 class History {
  public:
-  History(const std::filesystem::path& file, const Scene& scene)
+  History(const std::filesystem::path& file, const Scene& scene, const Simulation& sim)
       : out_(file), dim_(scene.dimension) {
     if (!out_) throw std::runtime_error("cannot write '" + file.string() + "'");
     out_.precision(10);
     out_ << "time,step,dt,kinetic,strain,gravity,total";
     for (int d = 0; d < dim_; ++d) out_ << ",momentum_" << kAxis[d];
-    for (const auto& wall : scene.walls) {
-      for (int d = 0; d < dim_; ++d) out_ << ",wall_" << wall.name << "_f" << kAxis[d];
+    for (const auto& wall : sim.wall_names()) {
+      for (int d = 0; d < dim_; ++d) out_ << ",wall_" << wall << "_f" << kAxis[d];
     }
     out_ << '\n';
   }
@@ -155,7 +155,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   try {
     fs::create_directories(out);
     writer = std::make_unique<ParticleWriter>(out / "particles.h5", out / "particles.xmf");
-    history = std::make_unique<History>(out / "history.csv", scene);
+    history = std::make_unique<History>(out / "history.csv", scene, *sim);
   } catch (const std::exception& e) {
     std::cerr << "mpm: " << out.string() << ": " << e.what() << '\n';
     return kExitIo;

@@ -3,6 +3,8 @@
 
 #include "mpm/scene.hpp"
 
+#include "mpm/boundary_package.hpp"
+
 #include <cmath>
 #include <fstream>
 #include <map>
@@ -260,6 +262,26 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
   return body;
 }
 
+WallContact read_contact(Reader& r) {
+  WallContact contact;
+  const std::string condition = r.choice("condition", {"sticky", "slip", "friction"});
+  contact.separable = r.boolean("separable", false);
+  if (condition == "friction") {
+    contact.condition = Friction{r.number("mu")};
+    if (std::get<Friction>(contact.condition).mu < 0.0) {
+      r.fail_at(r.child("mu"), "expected a friction coefficient >= 0");
+    }
+  } else {
+    if (r.has("mu")) r.fail_at(r.child("mu"), "only used with \"condition\": \"friction\"");
+    if (condition == "sticky") {
+      contact.condition = Sticky{};
+    } else {
+      contact.condition = Slip{};
+    }
+  }
+  return contact;
+}
+
 BoxWall read_wall(Reader& r, int dim) {
   static const char* const kFaces[] = {"xmin", "xmax", "ymin", "ymax", "zmin", "zmax"};
   std::vector<std::string> faces(kFaces, kFaces + 2 * dim);
@@ -271,21 +293,102 @@ BoxWall read_wall(Reader& r, int dim) {
       wall.side = f % 2 == 0 ? -1 : 1;
     }
   }
-  const std::string condition = r.choice("condition", {"sticky", "slip", "friction"});
-  wall.contact.separable = r.boolean("separable", false);
-  if (condition == "friction") {
-    wall.contact.condition = Friction{r.number("mu")};
-    if (std::get<Friction>(wall.contact.condition).mu < 0.0) {
-      r.fail_at(r.child("mu"), "expected a friction coefficient >= 0");
-    }
-  } else {
-    if (r.has("mu")) r.fail_at(r.child("mu"), "only used with \"condition\": \"friction\"");
-    if (condition == "sticky") {
-      wall.contact.condition = Sticky{};
+  wall.contact = read_contact(r);
+  return wall;
+}
+
+/// A file named in a scene is relative to the scene's folder.
+std::filesystem::path scene_relative(const Scene& scene, const std::string& file) {
+  const std::filesystem::path path(file);
+  if (path.is_absolute() || scene.file.empty()) return path;
+  return scene.file.parent_path() / path;
+}
+
+/// A dual-grid wall: the surface it follows, its layer and coupling, built here so that any
+/// problem is reported against the scene key.
+DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
+  const int dim = scene.dimension;
+  DualWallSpec wall;
+  wall.name = r.string("name", "wall" + std::to_string(index));
+  wall.method = r.choice("method", {"mortar", "one-way"}, "mortar") == "one-way"
+                    ? CouplingMethod::one_way
+                    : CouplingMethod::mortar;
+  wall.contact = read_contact(r);
+  const mpmgeom::GridSpec grid =
+      standard_grid_spec(dim, scene.box_min, scene.box_max, scene.spacing, scene.shape);
+
+  Reader surface = r.object("surface");
+  const std::vector<std::string> types = dim == 1   ? std::vector<std::string>{"point"}
+                                         : dim == 2 ? std::vector<std::string>{"polyline"}
+                                                    : std::vector<std::string>{"mesh", "package"};
+  const std::string type = surface.choice("type", types);
+  auto package = std::make_shared<BoundaryPackage>();
+  try {
+    if (type == "package") {
+      const std::string file = surface.string("file");
+      *package = load_boundary_package(scene_relative(scene, file));
+      const mpmgeom::GridSpec& g = package->grid;
+      if (g.dimension != grid.dimension || g.kernel != grid.kernel || g.spacing != grid.spacing ||
+          g.nodes != grid.nodes || (g.origin - grid.origin).norm() > 1e-9 * grid.spacing) {
+        surface.fail_at(surface.child("file"),
+                        "boundary package '" + file + "' was made for another grid (spacing " +
+                            Reader::fmt(g.spacing) + ", kernel " +
+                            (g.kernel == grid.kernel ? "same" : "different") +
+                            "); run mpm prep with this scene's grid box, spacing and shape");
+      }
     } else {
-      wall.contact.condition = Slip{};
+      mpmgeom::LayerOptions layer;
+      layer.thickness = r.positive("thickness", scene.spacing);
+      layer.layers = r.integer("layers", 1, 16, 1);
+      package->grid = grid;
+      if (type == "point") {
+        const double position = surface.number("position");
+        const int side = surface.integer("side", -1, 1, 1);
+        if (side == 0) surface.fail_at(surface.child("side"), "expected +1 or -1");
+        package->layer = mpmgeom::layer_1d(position, side, layer, wall.name, &package->report);
+      } else if (type == "polyline") {
+        const nlohmann::json& points = surface.required("points");
+        if (!points.is_array() || points.size() < 2) {
+          surface.fail_at(surface.child("points"), "expected an array of at least two [x, y]");
+        }
+        Eigen::MatrixX2d polyline(points.size(), 2);
+        for (std::size_t i = 0; i < points.size(); ++i) {
+          const auto& pt = points[i];
+          if (!pt.is_array() || pt.size() != 2 || !pt[0].is_number() || !pt[1].is_number()) {
+            surface.fail_at(surface.child("points") + "/" + std::to_string(i),
+                            "expected [x, y], got " + describe(pt));
+          }
+          polyline.row(static_cast<Eigen::Index>(i)) << pt[0].get<double>(), pt[1].get<double>();
+        }
+        package->layer = mpmgeom::extrude_layer_2d(polyline, surface.boolean("closed", false),
+                                                   layer, wall.name, &package->report);
+      } else {
+        PrepOptions prep;
+        prep.layer = layer;
+        prep.import.scale = surface.positive("scale", 1.0);
+        prep.import.translation =
+            surface.vector("translate", 3, Eigen::VectorXd::Zero(3)).head<3>();
+        prep.import.rotation_deg = surface.vector("rotate", 3, Eigen::VectorXd::Zero(3)).head<3>();
+        prep.remesh = surface.boolean("remesh", true);
+        prep.repair.require_closed = surface.boolean("closed", false);
+        const std::string file = surface.string("file");
+        *package = prepare_boundary(scene_relative(scene, file), prep, grid);
+      }
+      if (type != "mesh") {
+        package->interface_coupling =
+            mpmgeom::couple(package->layer, grid, mpmgeom::CouplingSurface::interface);
+        package->wall_coupling =
+            mpmgeom::couple(package->layer, grid, mpmgeom::CouplingSurface::wall);
+        package->cell_flags = mpmgeom::layer_cell_flags(package->layer, grid);
+      }
     }
+  } catch (const SceneError&) {
+    throw;
+  } catch (const std::exception& e) {
+    surface.fail(e.what());
   }
+  surface.finish();
+  wall.package = std::move(package);
   return wall;
 }
 
@@ -394,13 +497,19 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
 
   if (root.has("walls")) {
     std::set<std::string> faces;
-    for (auto& w : root.objects("walls", true)) {
-      BoxWall wall = read_wall(w, dim);
-      if (!faces.insert(wall.name).second) {
-        w.fail_at(w.child("face"), "a second wall on face " + wall.name);
+    auto walls = root.objects("walls", true);
+    for (std::size_t i = 0; i < walls.size(); ++i) {
+      Reader& w = walls[i];
+      if (w.has("surface")) {
+        scene.dual_walls.push_back(read_dual_wall(w, static_cast<int>(i), scene));
+      } else {
+        BoxWall wall = read_wall(w, dim);
+        if (!faces.insert(wall.name).second) {
+          w.fail_at(w.child("face"), "a second wall on face " + wall.name);
+        }
+        scene.walls.push_back(std::move(wall));
       }
       w.finish();
-      scene.walls.push_back(std::move(wall));
     }
   }
 

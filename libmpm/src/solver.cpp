@@ -83,6 +83,7 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
     wall_ghosts_.push_back(std::move(ghosts));
   }
   wall_impulse_.assign(scene.walls.size(), Eigen::Vector3d::Zero());
+  setup_dual_walls();
   for (std::size_t p = 0; p < particles.size(); ++p) {
     max_speed_ = std::max(max_speed_, particles.velocity[p].norm());
   }
@@ -161,7 +162,9 @@ void Solver<D>::fill_bodies() {
 
 template <int D>
 double Solver<D>::stable_dt(double cfl) const {
-  return cfl * grid.h / (max_wave_speed(scene_) + max_speed_);
+  double size = grid.h;  // boundary-grid cells may be smaller than the standard grid's
+  for (const auto& w : dual_) size = std::min(size, w.min_cell_size);
+  return cfl * size / (max_wave_speed(scene_) + max_speed_);
 }
 
 template <int D>
@@ -169,6 +172,7 @@ void Solver<D>::step(double dt) {
   particles_to_grid();
   update_grid(dt);
   apply_walls(dt);
+  couple_interfaces();
   grid_to_particles(dt);
 }
 
@@ -203,6 +207,7 @@ void Solver<D>::scatter(bool with_force) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
   auto scatter_one = [&](std::size_t p) {
+    if (P.layer_wall[p] >= 0) return;  // the boundary grid owns it (layer_scatter)
     const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
     const double m = P.mass[p];
     const Vec<D> v = P.velocity[p];
@@ -233,8 +238,10 @@ void Solver<D>::scatter(bool with_force) {
 template <int D>
 void Solver<D>::particles_to_grid() {
   grid.clear();
+  locate_in_layers();
   bin_particles_into_slabs();
   dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true); });
+  layer_scatter(true);
 }
 
 template <int D>
@@ -251,6 +258,7 @@ void Solver<D>::update_grid(double dt) {
       }
     }
   });
+  layer_update(dt);
 }
 
 template <int D>
@@ -294,6 +302,12 @@ void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record, doub
 template <int D>
 void Solver<D>::apply_walls(double dt) {
   constrain_walls(grid.velocity_new, true, dt);
+  layer_walls(&DualWall<D>::velocity_new, true);
+}
+
+template <int D>
+void Solver<D>::couple_interfaces() {
+  layer_couple(false);
 }
 
 template <int D>
@@ -364,6 +378,7 @@ void Solver<D>::gather(double dt) {
     constexpr unsigned Parts = decltype(parts)::value;
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
       for (std::size_t p = r.begin(); p != r.end(); ++p) {
+        if (P.layer_wall[p] >= 0) continue;  // layer_gather
         const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
         const GridSample<D> s =
             sample_grid<Parts>(grid, st, grid.velocity_new, grid.velocity, mass_threshold_);
@@ -405,6 +420,7 @@ void Solver<D>::gather_velocity_gradient() {
   auto& P = particles;
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
     for (std::size_t p = r.begin(); p != r.end(); ++p) {
+      if (P.layer_wall[p] >= 0) continue;  // layer_gather_gradient
       const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
       P.velocity_gradient[p] =
           sample_grid<kGradient>(grid, st, grid.velocity, grid.velocity, mass_threshold_).gradient;
@@ -417,9 +433,10 @@ void Solver<D>::grid_to_particles(double dt) {
   dispatch_shape(scene_.shape, [&](auto shape) {
     using Shape = decltype(shape);
     gather<Shape>(dt);
+    layer_gather(dt);
     if (scene_.update == UpdateScheme::musl) {
       // MUSL (Sulsky et al. 1995): map the updated particle momenta back to the grid at x_p^n
-      // and take the strain rate from that smoother field.
+      // and take the strain rate from that smoother field (both grids, coupled again on Phi).
       std::fill(grid.momentum.begin(), grid.momentum.end(), Vec<D>::Zero());
       scatter<Shape>(false);
       for (std::size_t n = 0; n < grid.size(); ++n) {
@@ -427,7 +444,10 @@ void Solver<D>::grid_to_particles(double dt) {
         grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
       }
       constrain_walls(grid.velocity, false, dt);
+      layer_remap();
+      layer_couple(true);
       gather_velocity_gradient<Shape>();
+      layer_gather_gradient();
     }
   });
   update_stress(dt);

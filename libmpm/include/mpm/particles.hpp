@@ -22,6 +22,12 @@ struct Particles {
   std::vector<int> material;
   std::vector<int> body;
 
+  // Dual-grid ownership (Blending): the wall whose layer holds the particle (-1: the standard
+  // grid owns it), the layer cell and the natural coordinates in it.
+  std::vector<int> layer_wall;
+  std::vector<int> layer_cell;
+  std::vector<Eigen::Vector3d> layer_xi;
+
   // Scratch filled during a step (kept here so that nothing is allocated inside a step).
   std::vector<Mat<D>> velocity_gradient;
   std::vector<Vec<D>> displacement;
@@ -39,6 +45,9 @@ struct Particles {
     half_width.resize(n, 0.0);
     material.resize(n, 0);
     body.resize(n, 0);
+    layer_wall.resize(n, -1);
+    layer_cell.resize(n, -1);
+    layer_xi.resize(n, Eigen::Vector3d::Zero());
     velocity_gradient.resize(n, Mat<D>::Zero());
     displacement.resize(n, Vec<D>::Zero());
   }

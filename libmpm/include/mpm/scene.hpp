@@ -3,6 +3,7 @@
 // SceneError whose message is one line: "FILE: /json/path: what was expected".
 
 #include <filesystem>
+#include <memory>
 #include <optional>
 #include <stdexcept>
 #include <string>
@@ -52,6 +53,25 @@ struct BodySpec {
   Eigen::VectorXd body_force;  ///< acceleration added to gravity (dim)
 };
 
+struct BoundaryPackage;
+
+/// How a dual-grid wall couples its boundary grid to the standard grid (DESIGN.md section 4).
+enum class CouplingMethod {
+  one_way,  ///< as published: boundary grid first, its velocity prescribed on Phi for the bulk
+  mortar,   ///< two-way saddle point on Phi: equal and opposite interface forces
+};
+
+/// A wall represented by a boundary grid (a layer along the surface) coupled to the standard
+/// grid by Lagrange multipliers on the interface Phi (the Blending method).
+struct DualWallSpec {
+  std::string name;
+  WallContact contact;
+  CouplingMethod method = CouplingMethod::mortar;
+  /// Layer, coupling matrices and cell flags, built while the scene is read (from a point in
+  /// 1D, a polyline in 2D, a mesh or a package from `mpm prep` in 3D).
+  std::shared_ptr<const BoundaryPackage> package;
+};
+
 struct Scene {
   std::filesystem::path file;  ///< where it came from, for messages ("<memory>" otherwise)
   std::string name;
@@ -73,6 +93,7 @@ struct Scene {
   std::vector<MaterialSpec> materials;
   std::vector<BodySpec> bodies;
   std::vector<BoxWall> walls;
+  std::vector<DualWallSpec> dual_walls;
 };
 
 /// Parses and validates a scene file. Throws SceneError.

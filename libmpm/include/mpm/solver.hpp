@@ -4,7 +4,8 @@
 //
 //   particles_to_grid();        // mass, momentum, internal and external force
 //   update_grid(dt);            // v_I^{n+1} = (p_I + dt f_I) / m_I
-//   apply_walls(dt);            // wall conditions on the box faces, reaction impulses
+//   apply_walls(dt);            // wall conditions on the box faces and on the Gamma nodes
+//   couple_interfaces();        // dual-grid walls: multipliers on Phi tie the two grids
 //   grid_to_particles(dt);      // v_p, x_p (PIC/FLIP or APIC); MUSL remap; stress update
 //
 // make_simulation() hides the dimension behind the Simulation interface for the run loop.
@@ -14,6 +15,7 @@
 #include <string>
 #include <vector>
 
+#include "mpm/dual_grid.hpp"
 #include "mpm/grid.hpp"
 #include "mpm/output.hpp"
 #include "mpm/particles.hpp"
@@ -42,6 +44,9 @@ class Simulation {
   /// Impulse the walls gave the material since the last reset, one entry per scene wall.
   [[nodiscard]] virtual const std::vector<Eigen::Vector3d>& wall_impulses() const = 0;
   virtual void reset_wall_impulses() = 0;
+  /// Names of the entries of wall_impulses(): box faces, then each dual wall (per part when it
+  /// has several).
+  [[nodiscard]] virtual std::vector<std::string> wall_names() const = 0;
   [[nodiscard]] virtual ParticleFrame frame(double time, std::int64_t step) const = 0;
   /// Set when the last step produced a non-finite value, an inverted element or a particle
   /// outside the grid: names the particle, its material and the quantity.
@@ -67,6 +72,7 @@ class Solver final : public Simulation {
     return wall_impulse_;
   }
   void reset_wall_impulses() override;
+  [[nodiscard]] std::vector<std::string> wall_names() const override;
   [[nodiscard]] ParticleFrame frame(double time, std::int64_t step) const override;
   [[nodiscard]] const std::optional<std::string>& fault() const override { return fault_; }
 
@@ -74,7 +80,13 @@ class Solver final : public Simulation {
   void particles_to_grid();
   void update_grid(double dt);
   void apply_walls(double dt);
+  void couple_interfaces();
   void grid_to_particles(double dt);
+
+  /// The dual-grid walls (Blending), in scene order.
+  [[nodiscard]] const std::vector<DualWall<D>>& dual_walls() const { return dual_; }
+  /// Which particles each layer holds; run by particles_to_grid(), public for tests.
+  void locate_in_layers();
 
   /// Index range [begin, end) of the particles of each material.
   [[nodiscard]] const std::vector<std::pair<std::size_t, std::size_t>>& material_groups() const {
@@ -93,6 +105,15 @@ class Solver final : public Simulation {
   void gather_velocity_gradient();
   void constrain_walls(std::vector<Vec<D>>& velocity, bool record, double dt);
   void update_stress(double dt);
+  // Dual-grid (boundary-grid) counterparts of the phases, in dual_grid.cpp.
+  void setup_dual_walls();
+  void layer_scatter(bool with_force);
+  void layer_update(double dt);
+  void layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool record);
+  void layer_couple(bool remapped);
+  void layer_gather(double dt);
+  void layer_gather_gradient();
+  void layer_remap();
   void advect_and_check();
   void fill_bodies();
   void bin_particles_into_slabs();
@@ -104,7 +125,8 @@ class Solver final : public Simulation {
   std::vector<std::vector<int>> wall_nodes_;  ///< grid nodes on or beyond each wall
   /// For bonded (non-separable) walls: (ghost node beyond the wall, its mirror image inside).
   std::vector<std::vector<std::pair<int, int>>> wall_ghosts_;
-  std::vector<Eigen::Vector3d> wall_impulse_;
+  std::vector<Eigen::Vector3d> wall_impulse_;  ///< box walls, then dual-wall parts
+  std::vector<DualWall<D>> dual_;
   /// Particle indices binned by slab of `slab_width` cells along axis 0. Slabs of one parity
   /// never touch the same nodes, so particle-to-grid runs them in parallel without atomics.
   static constexpr int slab_width = 4;

@@ -1,0 +1,414 @@
+// The Blending method (DESIGN.md section 4): particles in a wall's layer belong to its boundary
+// grid, all others to the standard grid; each grid gets mass, momentum and force from its own
+// particles; wall conditions act on the boundary grid's Gamma nodes in the wall's own frame;
+// continuity across Phi is imposed weakly with multipliers,
+//
+//   R^A^T v^A = R^alpha^T v^alpha,
+//
+// either one-way (as published: v^alpha prescribed for the bulk) or mortar (two-way saddle
+// point, equal and opposite interface impulses), solved through the Schur complement on the
+// multipliers with Eigen's sparse Cholesky.
+
+#include <algorithm>
+#include <cmath>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "mpm/solver.hpp"
+
+namespace mpm {
+namespace {
+
+/// Boundary-grid basis of one particle: values and physical gradients at its natural
+/// coordinates (the isoparametric map of the cell).
+template <int D>
+struct AlphaStencil {
+  int count = 0;
+  int node[6] = {};
+  double N[6] = {};
+  Vec<D> dN[6];
+};
+
+template <int D>
+AlphaStencil<D> alpha_stencil(const DualWall<D>& w, int cell, const Eigen::Vector3d& xi) {
+  const mpmgeom::AlphaBasis b = mpmgeom::alpha_basis(D, xi);
+  AlphaStencil<D> s;
+  s.count = w.layer->nodes_per_cell();
+  Mat<D> J = Mat<D>::Zero();  // dx/dxi
+  for (int k = 0; k < s.count; ++k) {
+    s.node[k] = w.layer->cells(cell, k);
+    s.N[k] = b.N[k];
+    J += w.position[s.node[k]] * b.dN.row(k).template head<D>();
+  }
+  const Mat<D> inv_jt = J.inverse().transpose();
+  for (int k = 0; k < s.count; ++k) {
+    s.dN[k] = inv_jt * b.dN.row(k).template head<D>().transpose();
+  }
+  return s;
+}
+
+}  // namespace
+
+template <int D>
+std::vector<std::string> Solver<D>::wall_names() const {
+  std::vector<std::string> names;
+  for (const auto& wall : scene_.walls) names.push_back(wall.name);
+  for (const auto& w : dual_) {
+    const auto& parts = w.layer->part_names;
+    if (parts.size() <= 1) {
+      names.push_back(w.spec->name);
+    } else {
+      for (const auto& part : parts) names.push_back(w.spec->name + "_" + part);
+    }
+  }
+  return names;
+}
+
+template <int D>
+void Solver<D>::setup_dual_walls() {
+  dual_.clear();
+  for (const DualWallSpec& spec : scene_.dual_walls) {
+    DualWall<D> w;
+    w.spec = &spec;
+    w.layer = &spec.package->layer;
+    w.locator = std::make_unique<mpmgeom::LayerLocator>(*w.layer);
+    const auto n = static_cast<std::size_t>(w.layer->nodes.rows());
+    w.position.resize(n);
+    for (std::size_t i = 0; i < n; ++i) {
+      w.position[i] = w.layer->nodes.row(static_cast<Eigen::Index>(i)).transpose();
+    }
+    w.mass.assign(n, 0.0);
+    w.momentum.assign(n, Vec<D>::Zero());
+    w.force.assign(n, Vec<D>::Zero());
+    w.velocity.assign(n, Vec<D>::Zero());
+    w.velocity_new.assign(n, Vec<D>::Zero());
+
+    // Gamma nodes and the part each reports to (from the first wall facet that holds it).
+    std::vector<int> part(n, 0);
+    for (Eigen::Index f = 0; f < w.layer->wall_facets.rows(); ++f) {
+      for (Eigen::Index k = 0; k < w.layer->wall_facets.cols(); ++k) {
+        part[w.layer->wall_facets(f, k)] = w.layer->wall_facet_part[f];
+      }
+    }
+    for (std::size_t i = 0; i < n; ++i) {
+      if (w.layer->node_on_wall[static_cast<Eigen::Index>(i)] == 0) continue;
+      w.wall_nodes.push_back(static_cast<int>(i));
+      w.wall_normal.push_back(
+          w.layer->node_normals.row(static_cast<Eigen::Index>(i)).transpose().normalized());
+      w.wall_node_part.push_back(part[i]);
+    }
+    w.impulse_offset = static_cast<int>(wall_impulse_.size());
+    wall_impulse_.resize(
+        wall_impulse_.size() + std::max<std::size_t>(1, w.layer->part_names.size()),
+        Eigen::Vector3d::Zero());
+
+    const mpmgeom::Coupling& c = spec.package->interface_coupling;
+    w.grid_coupling = c.grid;
+    w.boundary_coupling = c.boundary;
+    w.multiplier_integral = c.multiplier_integral;
+    w.multiplier_node = c.multiplier_node;
+
+    // The smallest cell extent (column height or wall edge) limits the stable step.
+    double smallest = std::numeric_limits<double>::infinity();
+    const int per_level = D == 1 ? 1 : D;
+    for (Eigen::Index cell = 0; cell < w.layer->cells.rows(); ++cell) {
+      for (int k = 0; k < per_level; ++k) {
+        const Vec<D> a = w.position[w.layer->cells(cell, k)];
+        const Vec<D> b = w.position[w.layer->cells(cell, k + per_level)];
+        smallest = std::min(smallest, (b - a).norm());
+        for (int j = k + 1; j < per_level; ++j) {
+          smallest = std::min(smallest, (w.position[w.layer->cells(cell, j)] - a).norm());
+        }
+      }
+    }
+    w.min_cell_size = smallest;
+    dual_.push_back(std::move(w));
+  }
+}
+
+// Ownership: a particle in a flagged standard-grid cell is looked up in the layer; found means
+// the boundary grid owns it this step. Unflagged cells never query Embree.
+template <int D>
+void Solver<D>::locate_in_layers() {
+  auto& P = particles;
+  for (auto& w : dual_) w.layer_particles = 0;
+  if (dual_.empty()) return;
+  Index<D> cells = grid.nodes - Index<D>::Ones();
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
+    for (std::size_t p = r.begin(); p != r.end(); ++p) {
+      P.layer_wall[p] = -1;
+      long cell = 0;
+      for (int d = 0; d < D; ++d) {
+        const int i = std::clamp(
+            static_cast<int>(std::floor((P.position[p][d] - grid.origin[d]) * grid.inv_h)), 0,
+            cells[d] - 1);
+        cell = cell * cells[d] + i;
+      }
+      for (std::size_t wi = 0; wi < dual_.size(); ++wi) {
+        const auto& flags = dual_[wi].spec->package->cell_flags;
+        if (flags.empty() || flags[static_cast<std::size_t>(cell)] == 0) continue;
+        Eigen::Vector3d x = Eigen::Vector3d::Zero();
+        x.head<D>() = P.position[p];
+        const auto found = dual_[wi].locator->locate(x);
+        if (found.cell >= 0) {
+          P.layer_wall[p] = static_cast<int>(wi);
+          P.layer_cell[p] = found.cell;
+          P.layer_xi[p] = found.xi;
+          break;
+        }
+      }
+    }
+  });
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    if (P.layer_wall[p] >= 0) ++dual_[P.layer_wall[p]].layer_particles;
+  }
+}
+
+template <int D>
+void Solver<D>::layer_scatter(bool with_force) {
+  auto& P = particles;
+  const bool apic = scene_.transfer == Transfer::apic;
+  for (auto& w : dual_) {
+    if (with_force) {
+      std::fill(w.mass.begin(), w.mass.end(), 0.0);
+      std::fill(w.force.begin(), w.force.end(), Vec<D>::Zero());
+    }
+    std::fill(w.momentum.begin(), w.momentum.end(), Vec<D>::Zero());
+  }
+  if (dual_.empty()) return;
+  // Few particles live in layers; a serial loop keeps the scatter free of races.
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    if (P.layer_wall[p] < 0) continue;
+    DualWall<D>& w = dual_[P.layer_wall[p]];
+    const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
+    const double m = P.mass[p];
+    const Vec<D> v = P.velocity[p];
+    const Mat<D> C = apic ? P.affine[p] : Mat<D>::Zero();
+    const Mat<D> vs = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p];
+    const Vec<D> mb = m * body_acceleration_[P.body[p]];
+    for (int k = 0; k < st.count; ++k) {
+      const int node = st.node[k];
+      const double N = st.N[k];
+      w.momentum[node] += N * m * (v + C * (w.position[node] - P.position[p]));
+      if (with_force) {
+        w.mass[node] += N * m;
+        w.force[node] += vs * st.dN[k] + N * mb;
+      }
+    }
+  }
+}
+
+template <int D>
+void Solver<D>::layer_update(double dt) {
+  for (auto& w : dual_) {
+    for (std::size_t n = 0; n < w.mass.size(); ++n) {
+      const double m = w.mass[n];
+      if (m > mass_threshold_) {
+        w.velocity[n] = w.momentum[n] / m;
+        w.velocity_new[n] = w.velocity[n] + dt * w.force[n] / m;
+      } else {
+        w.velocity[n].setZero();
+        w.velocity_new[n].setZero();
+      }
+    }
+  }
+}
+
+// Wall conditions on Gamma in each node's own frame (normal into the material).
+template <int D>
+void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool record) {
+  for (auto& w : dual_) {
+    std::vector<Vec<D>>& v = w.*velocity;
+    std::visit(
+        [&](const auto& condition) {
+          for (std::size_t i = 0; i < w.wall_nodes.size(); ++i) {
+            const int n = w.wall_nodes[i];
+            const double m = w.mass[n];
+            if (m <= mass_threshold_) continue;
+            const Vec<D> before = v[n];
+            v[n] = constrain_velocity<D>(condition, w.spec->contact.separable, w.wall_normal[i],
+                                         before);
+            if (record) {
+              wall_impulse_[w.impulse_offset + w.wall_node_part[i]] += pad3<D>(m * (v[n] - before));
+            }
+          }
+        },
+        w.spec->contact.condition);
+  }
+}
+
+// Phi: R^A^T v^A = R^alpha^T v^alpha, componentwise. Only multipliers whose own boundary node
+// carries mass and whose R^A column touches an active standard-grid node constrain anything; the
+// kept rows of each column are rescaled to sum to the integral of S_mu again, which keeps the
+// interface impulses equal and opposite (momentum exact) and leaves uniform motion untouched.
+template <int D>
+void Solver<D>::layer_couple(bool remapped) {
+  for (auto& w : dual_) {
+    if (w.layer_particles == 0) continue;  // nothing in the layer: the grids do not interact
+    const bool mortar = w.spec->method == CouplingMethod::mortar;
+    if (!remapped) {
+      // Assemble the active coupling and its Schur complement once per step; the MUSL remap
+      // reuses it (the masses do not change).
+      w.active_multipliers.clear();
+      std::vector<Eigen::Triplet<double>> ga, ba;
+      for (int mu = 0; mu < static_cast<int>(w.multiplier_node.size()); ++mu) {
+        if (w.mass[w.multiplier_node[mu]] <= mass_threshold_) continue;
+        double grid_sum = 0.0, boundary_sum = 0.0;
+        for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
+          if (grid.mass[it.row()] > mass_threshold_) grid_sum += it.value();
+        }
+        for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
+          if (w.mass[it.row()] > mass_threshold_) boundary_sum += it.value();
+        }
+        if (grid_sum <= 1e-12 * w.multiplier_integral[mu] || boundary_sum <= 0.0) continue;
+        const int col = static_cast<int>(w.active_multipliers.size());
+        w.active_multipliers.push_back(mu);
+        const double gs = w.multiplier_integral[mu] / grid_sum;
+        const double bs = w.multiplier_integral[mu] / boundary_sum;
+        for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
+          if (grid.mass[it.row()] > mass_threshold_)
+            ga.emplace_back(it.row(), col, gs * it.value());
+        }
+        for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
+          if (w.mass[it.row()] > mass_threshold_) ba.emplace_back(it.row(), col, bs * it.value());
+        }
+      }
+      const auto k = static_cast<Eigen::Index>(w.active_multipliers.size());
+      if (k == 0) continue;
+      w.grid_active.resize(static_cast<Eigen::Index>(grid.size()), k);
+      w.grid_active.setFromTriplets(ga.begin(), ga.end());
+      w.boundary_active.resize(static_cast<Eigen::Index>(w.mass.size()), k);
+      w.boundary_active.setFromTriplets(ba.begin(), ba.end());
+      // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar).
+      Eigen::VectorXd inv_grid_mass(grid.size());
+      for (std::size_t n = 0; n < grid.size(); ++n) {
+        inv_grid_mass[static_cast<Eigen::Index>(n)] =
+            grid.mass[n] > mass_threshold_ ? 1.0 / grid.mass[n] : 0.0;
+      }
+      Eigen::SparseMatrix<double> S =
+          w.grid_active.transpose() * inv_grid_mass.asDiagonal() * w.grid_active;
+      if (mortar) {
+        Eigen::VectorXd inv_layer_mass(w.mass.size());
+        for (std::size_t n = 0; n < w.mass.size(); ++n) {
+          inv_layer_mass[static_cast<Eigen::Index>(n)] =
+              w.mass[n] > mass_threshold_ ? 1.0 / w.mass[n] : 0.0;
+        }
+        S += w.boundary_active.transpose() * inv_layer_mass.asDiagonal() * w.boundary_active;
+      }
+      // More multipliers than the active nodes can satisfy makes S singular (the inf-sup
+      // problem of DESIGN.md): a relative 1e-10 diagonal shift keeps the factorisation defined
+      // and leaves well-posed systems unchanged to round-off.
+      const double shift = 1e-10 * S.diagonal().maxCoeff();
+      for (Eigen::Index i = 0; i < k; ++i) S.coeffRef(i, i) += shift;
+      w.schur->compute(S);
+    }
+    if (w.active_multipliers.empty() || w.schur->info() != Eigen::Success) continue;
+
+    // Apply to the new velocities (and to the old ones, which FLIP differences against), or to
+    // the remapped velocities of MUSL.
+    auto solve = [&](std::vector<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
+      for (int d = 0; d < D; ++d) {
+        Eigen::VectorXd a(grid.size()), b(w.mass.size());
+        for (std::size_t n = 0; n < grid.size(); ++n) a[static_cast<Eigen::Index>(n)] = va[n][d];
+        for (std::size_t n = 0; n < w.mass.size(); ++n) {
+          b[static_cast<Eigen::Index>(n)] = valpha[n][d];
+        }
+        const Eigen::VectorXd gap =
+            w.grid_active.transpose() * a - w.boundary_active.transpose() * b;
+        const Eigen::VectorXd lambda = w.schur->solve(gap);
+        const Eigen::VectorXd da = w.grid_active * lambda;
+        for (Eigen::Index n = 0; n < da.size(); ++n) {
+          if (da[n] != 0.0) va[n][d] -= da[n] / grid.mass[n];
+        }
+        if (mortar) {
+          const Eigen::VectorXd db = w.boundary_active * lambda;
+          for (Eigen::Index n = 0; n < db.size(); ++n) {
+            if (db[n] != 0.0) valpha[n][d] += db[n] / w.mass[n];
+          }
+        }
+      }
+    };
+    if (remapped) {
+      solve(grid.velocity, w.velocity);
+    } else {
+      solve(grid.velocity_new, w.velocity_new);
+      solve(grid.velocity, w.velocity);
+    }
+  }
+}
+
+// Boundary-grid particles: new velocity (PIC/FLIP blend or APIC with C_p = grad v, exact for the
+// linear alpha basis), displacement, and for USL the velocity gradient.
+template <int D>
+void Solver<D>::layer_gather(double dt) {
+  auto& P = particles;
+  if (dual_.empty()) return;
+  const bool apic = scene_.transfer == Transfer::apic;
+  const bool usl = scene_.update == UpdateScheme::usl;
+  const double alpha = scene_.flip_blend;
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    if (P.layer_wall[p] < 0) continue;
+    const DualWall<D>& w = dual_[P.layer_wall[p]];
+    const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
+    Vec<D> value = Vec<D>::Zero(), increment = Vec<D>::Zero();
+    Mat<D> L = Mat<D>::Zero();
+    for (int k = 0; k < st.count; ++k) {
+      const int n = st.node[k];
+      value += st.N[k] * w.velocity_new[n];
+      increment += st.N[k] * (w.velocity_new[n] - w.velocity[n]);
+      L += w.velocity_new[n] * st.dN[k].transpose();
+    }
+    if (apic) {
+      P.velocity[p] = value;
+      P.affine[p] = L;
+    } else {
+      P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
+    }
+    P.displacement[p] = dt * value;
+    if (usl) P.velocity_gradient[p] = L;
+  }
+}
+
+template <int D>
+void Solver<D>::layer_remap() {
+  layer_scatter(false);
+  for (auto& w : dual_) {
+    for (std::size_t n = 0; n < w.mass.size(); ++n) {
+      w.velocity[n] =
+          w.mass[n] > mass_threshold_ ? Vec<D>(w.momentum[n] / w.mass[n]) : Vec<D>::Zero();
+    }
+  }
+  layer_walls(&DualWall<D>::velocity, false);
+}
+
+template <int D>
+void Solver<D>::layer_gather_gradient() {
+  auto& P = particles;
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    if (P.layer_wall[p] < 0) continue;
+    const DualWall<D>& w = dual_[P.layer_wall[p]];
+    const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
+    Mat<D> L = Mat<D>::Zero();
+    for (int k = 0; k < st.count; ++k) L += w.velocity[st.node[k]] * st.dN[k].transpose();
+    P.velocity_gradient[p] = L;
+  }
+}
+
+#define MPM_DUAL_GRID_MEMBERS(D)                                                  \
+  template std::vector<std::string> Solver<D>::wall_names() const;                \
+  template void Solver<D>::setup_dual_walls();                                    \
+  template void Solver<D>::locate_in_layers();                                    \
+  template void Solver<D>::layer_scatter(bool);                                   \
+  template void Solver<D>::layer_update(double);                                  \
+  template void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*, bool); \
+  template void Solver<D>::layer_couple(bool);                                    \
+  template void Solver<D>::layer_gather(double);                                  \
+  template void Solver<D>::layer_remap();                                         \
+  template void Solver<D>::layer_gather_gradient();
+
+MPM_DUAL_GRID_MEMBERS(1)
+MPM_DUAL_GRID_MEMBERS(2)
+MPM_DUAL_GRID_MEMBERS(3)
+
+}  // namespace mpm
