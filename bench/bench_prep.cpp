@@ -3,7 +3,7 @@
 // size: this is minutes of CGAL work, not a micro-benchmark.
 //
 //   build/bin/bench_prep                      # 10^6 triangles, h = 1 m (remeshed to ~h)
-//   build/bin/bench_prep --benchmark_filter=/250   # the 2.5e5-triangle variant only
+//   build/bin/bench_prep --benchmark_filter=/250   # the 1.25e5-triangle variant only
 
 #include <benchmark/benchmark.h>
 

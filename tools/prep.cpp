@@ -50,12 +50,14 @@ int prep_command(const PrepArgs& args) {
       for (int d = 0; d < 3; ++d) {
         box_min[d] = args.origin[d];
         box_max[d] = args.box_max[d];
-        const double cells = (box_max[d] - box_min[d]) / h;
-        if (!(cells >= 1.0) || std::abs(cells - std::round(cells)) > 1e-6 * cells) {
-          std::cerr << "mpm prep: --box-max: the box extent on axis " << d
-                    << " must be a positive whole number of cells of --spacing " << h << '\n';
-          return kExitBadInput;
-        }
+      }
+    }
+    for (int d = 0; d < 3; ++d) {
+      const double cells = (box_max[d] - box_min[d]) / h;
+      if (!(cells >= 1.0) || std::abs(cells - std::round(cells)) > 1e-6 * cells) {
+        std::cerr << "mpm prep: --box-max: the box extent on axis " << d
+                  << " must be a positive whole number of cells of --spacing " << h << '\n';
+        return kExitBadInput;
       }
     }
     const mpmgeom::GridSpec grid = standard_grid_spec(3, box_min, box_max, h, shape);
@@ -72,6 +74,8 @@ int prep_command(const PrepArgs& args) {
     std::printf("  layer        %zu cells, %zu nodes, %d sub-layer(s), t = %g\n", r.cells, r.nodes,
                 options.layer.layers, options.layer.thickness);
     std::printf("  parts        %zu\n", package.layer.part_names.size());
+    for (const auto& line : package.repairs.repairs)
+      std::printf("  repaired     %s\n", line.c_str());
     std::printf("  jacobian     min %.4g (relative to the nominal cell)\n", r.min_jacobian);
     std::printf("  shrunk       %zu columns, by at most %.1f%%\n", r.columns_shrunk,
                 100.0 * r.max_shrink);

@@ -116,8 +116,7 @@ def main():
         lx, ly, lz = s, r * math.cos(phi), r * math.sin(phi)
         return (lx * math.cos(theta) + lz * math.sin(theta), ly,
                 -lx * math.sin(theta) + lz * math.cos(theta) + 2.5)
-    v, f = grid_surface(40, 24, chute)
-    f = [(a, c, b) for a, b, c in f]  # flip so normals face the axis
+    v, f = grid_surface(40, 24, chute)  # (u along the axis, w around it): normals face the axis
     write_obj("chute_half_cylinder.obj", v, f, "chute")
 
     # Tilted plane, 25 degrees about y, normals up.

@@ -375,12 +375,12 @@ BoundaryPackage prepare_boundary(const std::filesystem::path& mesh_file, const P
                                  const mpmgeom::GridSpec& grid) {
   std::string why;
   if (!options.layer.valid(&why)) throw std::invalid_argument(why);
+  BoundaryPackage package;
   mpmgeom::TriangleMesh mesh = mpmgeom::load_mesh(mesh_file, options.import);
-  mesh = mpmgeom::validate_and_repair(mesh, mesh_file.string(), options.repair);
+  mesh = mpmgeom::validate_and_repair(mesh, mesh_file.string(), options.repair, &package.repairs);
   if (options.remesh) {
     mesh = mpmgeom::remesh_isotropic(mesh, options.remesh_factor * grid.spacing);
   }
-  BoundaryPackage package;
   package.layer = mpmgeom::extrude_layer(mesh, options.layer, &package.report);
   package.grid = grid;
   package.interface_coupling =

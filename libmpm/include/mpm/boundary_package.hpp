@@ -4,13 +4,14 @@
 //
 // HDF5 layout (version 1):
 //   /          attrs format="mpm-boundary-package", version, source, source_digest
-//   /grid      attrs dimension, origin[3], spacing, nodes[3], kernel ("linear"|"bspline2")
-//   /layer     nodes (N x dim), cells (C x 2|4|6), cell_layer, cell_part, wall_facets,
-//              interface_facets, wall_facet_part, node_normals (N x dim), node_on_wall,
-//              node_on_interface; attrs layers, thickness; /layer/parts: names (strings)
+//   /grid      attrs dimension, origin_0..2, spacing, nodes_0..2, kernel ("linear"|"bspline2")
+//   /layer     nodes (N x dim), cells (C x 2|4|6), cell_layer, cell_part, part_names (strings),
+//              wall_facets, interface_facets, wall_facet_part, node_normals (N x dim),
+//              node_on_wall, node_on_interface; attrs dimension, layers, thickness
 //   /coupling/interface, /coupling/wall: multiplier_node, multiplier_integral, grid_rows,
 //              grid_cols, grid_values (R^A as triplets), boundary_rows, boundary_cols,
-//              boundary_values (R^alpha); attrs grid_shape[2], boundary_shape[2]
+//              boundary_values (R^alpha); attrs grid_row_count, grid_col_count,
+//              boundary_row_count, boundary_col_count
 //   /cell_flags  uint8 per standard-grid cell
 //   /report    attrs of mpmgeom::LayerReport
 //   /xdmf      visualisation copies (points padded to 3D, cells in VTK node order)
@@ -42,8 +43,9 @@ struct BoundaryPackage {
   mpmgeom::Coupling wall_coupling;       ///< on Gamma (Enhanced)
   std::vector<std::uint8_t> cell_flags;  ///< per standard-grid cell: may a particle be in the layer
   mpmgeom::LayerReport report;
-  std::string source;         ///< the mesh file it was made from
-  std::string source_digest;  ///< digest of the mesh bytes and every option (staleness check)
+  mpmgeom::RepairReport repairs;  ///< what validation repaired in the mesh (not stored in HDF5)
+  std::string source;             ///< the mesh file it was made from
+  std::string source_digest;      ///< digest of the mesh bytes and every option (staleness check)
 };
 
 /// What `mpm prep` does to a surface mesh.
