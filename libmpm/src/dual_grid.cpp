@@ -238,8 +238,9 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
   }
 }
 
-// Phi: R^A^T v^A = R^alpha^T v^alpha, componentwise. Only multipliers whose own boundary node
-// carries mass and whose R^A column touches an active standard-grid node constrain anything; the
+// Phi: R^A^T v^A = R^alpha^T v^alpha, componentwise. Only nodes above the coupling mass
+// threshold take part. Only multipliers whose own boundary node carries mass and whose R^A
+// column touches such a standard-grid node constrain anything; the
 // kept rows of each column are rescaled to sum to the integral of S_mu again, which keeps the
 // interface impulses equal and opposite (momentum exact) and leaves uniform motion untouched.
 template <int D>
@@ -253,13 +254,13 @@ void Solver<D>::layer_couple(bool remapped) {
       w.active_multipliers.clear();
       std::vector<Eigen::Triplet<double>> ga, ba;
       for (int mu = 0; mu < static_cast<int>(w.multiplier_node.size()); ++mu) {
-        if (w.mass[w.multiplier_node[mu]] <= mass_threshold_) continue;
+        if (w.mass[w.multiplier_node[mu]] <= coupling_threshold_) continue;
         double grid_sum = 0.0, boundary_sum = 0.0;
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
-          if (grid.mass[it.row()] > mass_threshold_) grid_sum += it.value();
+          if (grid.mass[it.row()] > coupling_threshold_) grid_sum += it.value();
         }
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
-          if (w.mass[it.row()] > mass_threshold_) boundary_sum += it.value();
+          if (w.mass[it.row()] > coupling_threshold_) boundary_sum += it.value();
         }
         if (grid_sum <= 1e-12 * w.multiplier_integral[mu] || boundary_sum <= 0.0) continue;
         const int col = static_cast<int>(w.active_multipliers.size());
@@ -267,11 +268,12 @@ void Solver<D>::layer_couple(bool remapped) {
         const double gs = w.multiplier_integral[mu] / grid_sum;
         const double bs = w.multiplier_integral[mu] / boundary_sum;
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
-          if (grid.mass[it.row()] > mass_threshold_)
+          if (grid.mass[it.row()] > coupling_threshold_)
             ga.emplace_back(it.row(), col, gs * it.value());
         }
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
-          if (w.mass[it.row()] > mass_threshold_) ba.emplace_back(it.row(), col, bs * it.value());
+          if (w.mass[it.row()] > coupling_threshold_)
+            ba.emplace_back(it.row(), col, bs * it.value());
         }
       }
       const auto k = static_cast<Eigen::Index>(w.active_multipliers.size());
@@ -284,7 +286,7 @@ void Solver<D>::layer_couple(bool remapped) {
       Eigen::VectorXd inv_grid_mass(grid.size());
       for (std::size_t n = 0; n < grid.size(); ++n) {
         inv_grid_mass[static_cast<Eigen::Index>(n)] =
-            grid.mass[n] > mass_threshold_ ? 1.0 / grid.mass[n] : 0.0;
+            grid.mass[n] > coupling_threshold_ ? 1.0 / grid.mass[n] : 0.0;
       }
       Eigen::SparseMatrix<double> S =
           w.grid_active.transpose() * inv_grid_mass.asDiagonal() * w.grid_active;
@@ -292,7 +294,7 @@ void Solver<D>::layer_couple(bool remapped) {
         Eigen::VectorXd inv_layer_mass(w.mass.size());
         for (std::size_t n = 0; n < w.mass.size(); ++n) {
           inv_layer_mass[static_cast<Eigen::Index>(n)] =
-              w.mass[n] > mass_threshold_ ? 1.0 / w.mass[n] : 0.0;
+              w.mass[n] > coupling_threshold_ ? 1.0 / w.mass[n] : 0.0;
         }
         S += w.boundary_active.transpose() * inv_layer_mass.asDiagonal() * w.boundary_active;
       }
@@ -361,7 +363,7 @@ void Solver<D>::layer_gather(double dt) {
     }
     if (apic) {
       P.velocity[p] = value;
-      P.affine[p] = L;
+      if (usl) P.affine[p] = L;  // MUSL: from the remapped field (grid_to_particles)
     } else {
       P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
     }

@@ -6,6 +6,8 @@
 #include "mpm/boundary_package.hpp"
 
 #include <cmath>
+
+#include <Eigen/Geometry>
 #include <fstream>
 #include <map>
 #include <set>
@@ -244,6 +246,32 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
     }
     lo = body.min;
     hi = body.max;
+    if (shape.has("rotation")) {
+      if (dim == 1) shape.fail_at(shape.child("rotation"), "a 1D body cannot be rotated");
+      Eigen::Vector3d angles = Eigen::Vector3d::Zero();
+      if (dim == 2) {
+        angles[2] = shape.number("rotation");
+      } else {
+        angles = shape.vector("rotation", 3);
+      }
+      angles *= std::acos(-1.0) / 180.0;
+      body.rotation = (Eigen::AngleAxisd(angles[2], Eigen::Vector3d::UnitZ()) *
+                       Eigen::AngleAxisd(angles[1], Eigen::Vector3d::UnitY()) *
+                       Eigen::AngleAxisd(angles[0], Eigen::Vector3d::UnitX()))
+                          .toRotationMatrix();
+      body.rotated = true;
+      // The rotated corners bound the body.
+      const Eigen::VectorXd centre = 0.5 * (body.min + body.max);
+      const Eigen::VectorXd half = 0.5 * (body.max - body.min);
+      lo = hi = centre;
+      for (int corner = 0; corner < (1 << dim); ++corner) {
+        Eigen::Vector3d offset = Eigen::Vector3d::Zero();
+        for (int d = 0; d < dim; ++d) offset[d] = (corner >> d & 1) ? half[d] : -half[d];
+        const Eigen::VectorXd x = centre + (body.rotation * offset).head(dim);
+        lo = lo.cwiseMin(x);
+        hi = hi.cwiseMax(x);
+      }
+    }
   } else {
     body.shape = BodySpec::Shape::sphere;
     body.center = shape.vector("center", dim);
@@ -469,6 +497,8 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
       }
     }
     scene.mass_threshold = scheme.in_range("mass_threshold", 0.0, 0.5, false, 1e-9);
+    scene.coupling_mass_threshold =
+        scheme.in_range("coupling_mass_threshold", 0.0, 0.5, false, 1e-2);
     scheme.finish();
   }
 

@@ -60,6 +60,7 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
                              static_cast<double>(particles.size())
                        : 0.0;
   mass_threshold_ = scene.mass_threshold * mean_mass;
+  coupling_threshold_ = std::max(mass_threshold_, scene.coupling_mass_threshold * mean_mass);
 
   // Nodes on the wall plane and the ghost nodes beyond it carry the wall condition.
   for (const auto& wall : scene.walls) {
@@ -96,11 +97,35 @@ void Solver<D>::fill_bodies() {
   struct Seed {
     Vec<D> x;
     int body;
+    double volume;
   };
   std::vector<Seed> seeds;
   for (std::size_t b = 0; b < scene_.bodies.size(); ++b) {
     const BodySpec& body = scene_.bodies[b];
     const int n = body.particles_per_cell;
+    if (body.rotated) {
+      // A lattice aligned with the box's own edges, about h/n apart, filling it exactly.
+      const Vec<D> extent = to_vec<D>(body.max) - to_vec<D>(body.min);
+      const Vec<D> centre = 0.5 * (to_vec<D>(body.max) + to_vec<D>(body.min));
+      Index<D> count;
+      for (int d = 0; d < D; ++d) {
+        count[d] = std::max(1, static_cast<int>(std::lround(extent[d] / (h / n))));
+      }
+      const long total = count.template cast<long>().prod();
+      const double volume = extent.prod() / static_cast<double>(total);
+      const Mat<D> R = body.rotation.topLeftCorner<D, D>();
+      for (long k = 0; k < total; ++k) {
+        long rest = k;
+        Vec<D> local;
+        for (int d = D - 1; d >= 0; --d) {
+          const long i = rest % count[d];
+          rest /= count[d];
+          local[d] = (static_cast<double>(i) + 0.5) * extent[d] / count[d] - 0.5 * extent[d];
+        }
+        seeds.push_back({centre + R * local, static_cast<int>(b), volume});
+      }
+      continue;
+    }
     Vec<D> lo, hi;
     if (body.shape == BodySpec::Shape::box) {
       lo = to_vec<D>(body.min);
@@ -124,7 +149,9 @@ void Solver<D>::fill_bodies() {
         rest /= count[d];
         x[d] = scene_.box_min[d] + (static_cast<double>(i) + 0.5) * h / n;
       }
-      if (inside<D>(body, x)) seeds.push_back({x, static_cast<int>(b)});
+      if (inside<D>(body, x)) {
+        seeds.push_back({x, static_cast<int>(b), std::pow(h / n, D)});
+      }
     }
   }
   // Group by material so the constitutive update is dispatched once per group.
@@ -135,7 +162,7 @@ void Solver<D>::fill_bodies() {
   for (std::size_t p = 0; p < seeds.size(); ++p) {
     const BodySpec& body = scene_.bodies[seeds[p].body];
     const int n = body.particles_per_cell;
-    const double volume = std::pow(h / n, D);
+    const double volume = seeds[p].volume;
     particles.position[p] = seeds[p].x;
     particles.velocity[p] = to_vec<D>(body.velocity);
     if (body.velocity_sine) {
@@ -364,7 +391,8 @@ GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
 // Gather the new velocity and the displacement at x_p^n. APIC keeps C_p = B_p D_p^{-1} with
 // D_p = h^2/4 I for the quadratic B-spline (Jiang et al. 2015 eq. 10); for the linear kernel
 // B_p D_p^{-1} = sum_I v_I grad N_I^T (ibid., section 5.3), which is also used for GIMP: both are
-// exact for affine fields. USL also takes the velocity gradient here.
+// exact for affine fields (with MUSL taken after the remap, see grid_to_particles). USL also
+// takes the velocity gradient here.
 template <int D>
 template <class Shape>
 void Solver<D>::gather(double dt) {
@@ -388,9 +416,10 @@ void Solver<D>::gather(double dt) {
           P.velocity[p] = s.value;
           if constexpr (bspline) {
             P.affine[p] = s.moment * inv_d;
-          } else {
+          } else if (usl) {
             P.affine[p] = s.gradient;
           }
+          // MUSL, linear/GIMP: C_p is taken from the remapped field in grid_to_particles().
         }
         P.displacement[p] = dt * s.value;
         if constexpr ((Parts & kGradient) != 0) {
@@ -401,11 +430,10 @@ void Solver<D>::gather(double dt) {
   };
   using std::integral_constant;
   if (apic) {
-    constexpr unsigned affine = bspline ? kMoment : kGradient;
     if (usl) {
-      pass(integral_constant<unsigned, affine | kGradient>{});
+      pass(integral_constant<unsigned, (bspline ? kMoment : 0U) | kGradient>{});
     } else {
-      pass(integral_constant<unsigned, affine>{});
+      pass(integral_constant < unsigned, bspline ? kMoment : 0U > {});
     }
   } else if (usl) {
     pass(integral_constant<unsigned, kIncrement | kGradient>{});
@@ -448,6 +476,19 @@ void Solver<D>::grid_to_particles(double dt) {
       layer_couple(true);
       gather_velocity_gradient<Shape>();
       layer_gather_gradient();
+      // APIC for kernels without a constant D_p (linear, GIMP, the boundary grid's linear
+      // basis): C_p = B_p D_p^-1 = grad v, but taken from the remapped field, a mass-weighted
+      // average, rather than from v^{n+1}, which nearly empty nodes make arbitrarily large
+      // (the cell-crossing instability). Still exact for affine fields: the APIC remap of an
+      // affine field is affine.
+      if (scene_.transfer == Transfer::apic) {
+        auto& P = particles;
+        for (std::size_t p = 0; p < P.size(); ++p) {
+          if (!std::is_same_v<Shape, BSpline2Shape> || P.layer_wall[p] >= 0) {
+            P.affine[p] = P.velocity_gradient[p];
+          }
+        }
+      }
     }
   });
   update_stress(dt);

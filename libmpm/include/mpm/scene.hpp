@@ -36,8 +36,13 @@ struct BodySpec {
   std::string name;
   int material = 0;
   Shape shape = Shape::box;
-  Eigen::VectorXd min, max;  ///< box corners (dim)
-  Eigen::VectorXd center;    ///< sphere/disk centre (dim)
+  Eigen::VectorXd min, max;  ///< box corners (dim), before any rotation
+  /// Box rotation about its centre (identity unless "rotation" is given: an angle in degrees in
+  /// 2D, angles about x, y, z in 3D). A rotated box is seeded on a lattice aligned with its own
+  /// edges, so its faces are flat (a block resting on an inclined wall).
+  Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();
+  bool rotated = false;
+  Eigen::VectorXd center;  ///< sphere/disk centre (dim)
   double radius = 0.0;
   int particles_per_cell = 2;  ///< per direction
   Eigen::VectorXd velocity;    ///< initial velocity (dim)
@@ -83,7 +88,11 @@ struct Scene {
   Transfer transfer = Transfer::apic;
   double flip_blend = 1.0;  ///< FLIP fraction of the PIC/FLIP blend
   double mass_threshold =
-      1e-9;  ///< nodes lighter than this times the mean particle mass are inactive
+      1e-9;
+  /// Nodes lighter than this times the mean particle mass take no part in the Phi coupling of
+  /// dual-grid walls: a multiplier would push them by gap / R_J, unbounded as the sliver of
+  /// mass that reaches them vanishes (DESIGN.md section 4).
+  double coupling_mass_threshold = 1e-2;  ///< nodes lighter than this times the mean particle mass are inactive
   Eigen::VectorXd gravity;
   double end_time = 0.0;
   double cfl = 0.5;

@@ -135,6 +135,7 @@ class Solver final : public Simulation {
   std::vector<int> slab_of_;
   std::vector<int> slab_fill_;
   double mass_threshold_ = 0.0;
+  double coupling_threshold_ = 0.0;  ///< absolute, from scene.coupling_mass_threshold
   double max_speed_ = 0.0;
   std::optional<std::string> fault_;
 };
