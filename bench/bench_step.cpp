@@ -1,14 +1,31 @@
-// Throughput of the standard 3D step: an elastic block (Neo-Hookean), quadratic B-spline,
-// MUSL/APIC, 8 particles per cell, no walls. Reports particle-steps per second (items/s) so it
-// can be set against ../shared/tools/yardstick/run.sh measured in the same session.
+// Throughput of the 3D step: an elastic block (Neo-Hookean), quadratic B-spline, MUSL/APIC,
+// 8 particles per cell. Reports particle-steps per second (items/s) so it can be set against
+// ../shared/tools/yardstick/run.sh measured in the same session.
+//
+//   BM_StandardStep3D/N  : an N^3-cell block in free flight, no walls (the bare step)
+//   BM_FloorStep3D/N/m   : an N x N x 10-cell block resting on a floor under gravity, so 10% of
+//                          the particles are within h of it; m = 0: standard wall on the box face
+//                          (grid line), 1: Blending mortar dual-grid floor, 2: one-way. The floor
+//                          of the dual-grid runs is a plane 0.3 h off the grid lines.
 
 #include <benchmark/benchmark.h>
+
+#include <filesystem>
 
 #include <nlohmann/json.hpp>
 
 #include "mpm/solver.hpp"
+#include "mpmgeom/triangle_mesh.hpp"
 
 namespace {
+
+nlohmann::json material() {
+  return {{"name", "m"},
+          {"model", "neo_hookean"},
+          {"density", 1000.0},
+          {"youngs_modulus", 1.0e6},
+          {"poisson_ratio", 0.3}};
+}
 
 mpm::Scene block_scene(int cells) {
   // Grid box with a one-cell margin around a cube of `cells`^3 filled cells.
@@ -18,17 +35,58 @@ mpm::Scene block_scene(int cells) {
       {"grid", {{"min", {-h, -h, -h}}, {"max", {1.0 + h, 1.0 + h, 1.0 + h}}, {"spacing", h}}},
       {"shape_function", "bspline2"},
       {"scheme", {{"update", "musl"}, {"transfer", "apic"}}},
-      {"materials",
-       {{{"name", "m"},
-         {"model", "neo_hookean"},
-         {"density", 1000.0},
-         {"youngs_modulus", 1.0e6},
-         {"poisson_ratio", 0.3}}}},
+      {"materials", {material()}},
       {"bodies",
        {{{"material", "m"},
          {"shape", {{"type", "box"}, {"min", {0.0, 0.0, 0.0}}, {"max", {1.0, 1.0, 1.0}}}},
          {"particles_per_cell", 2},
          {"velocity", {0.1, -0.2, 0.05}}}}},
+      {"time", {{"end", 1.0}}},
+  };
+  return mpm::parse_scene(doc, "<bench>");
+}
+
+/// A floor plane z = level as two triangles spanning [lo, hi]^2, normals up.
+std::filesystem::path floor_mesh(double level, double lo, double hi) {
+  const auto file = std::filesystem::temp_directory_path() /
+                    ("mpm_bench_floor_" + std::to_string(level) + ".obj");
+  mpmgeom::TriangleMesh mesh;
+  mesh.V.resize(4, 3);
+  mesh.V << lo, lo, level, hi, lo, level, hi, hi, level, lo, hi, level;
+  mesh.F.resize(2, 3);
+  mesh.F << 0, 1, 2, 0, 2, 3;
+  mesh.part = Eigen::VectorXi::Zero(2);
+  mesh.part_names = {"floor"};
+  mpmgeom::save_mesh(mesh, file);
+  return file;
+}
+
+mpm::Scene floor_scene(int cells, int method) {
+  const double h = 1.0 / cells;
+  const double base = method == 0 ? 0.0 : 0.3 * h;  // dual-grid floor off the grid lines
+  nlohmann::json wall;
+  if (method == 0) {
+    wall = {{"face", "zmin"}, {"condition", "slip"}, {"separable", true}};
+  } else {
+    wall = {{"name", "floor"},
+            {"surface", {{"type", "mesh"}, {"file", floor_mesh(base, -h, 1.0 + h).string()}, {"remesh", true}}},
+            {"method", method == 1 ? "mortar" : "one-way"},
+            {"condition", "slip"},
+            {"separable", true}};
+  }
+  const nlohmann::json doc = {
+      {"dimension", 3},
+      {"grid", {{"min", {-h, -h, 0.0}}, {"max", {1.0 + h, 1.0 + h, 12.0 * h}}, {"spacing", h}}},
+      {"shape_function", "bspline2"},
+      {"scheme", {{"update", "musl"}, {"transfer", "apic"}}},
+      {"gravity", {0.0, 0.0, -9.81}},
+      {"materials", {material()}},
+      {"bodies",
+       {{{"material", "m"},
+         {"shape",
+          {{"type", "box"}, {"min", {0.0, 0.0, base}}, {"max", {1.0, 1.0, base + 10.0 * h}}}},
+         {"particles_per_cell", 2}}}},
+      {"walls", {wall}},
       {"time", {{"end", 1.0}}},
   };
   return mpm::parse_scene(doc, "<bench>");
@@ -47,6 +105,26 @@ BENCHMARK(BM_StandardStep3D)
     ->Arg(16)
     ->Arg(32)
     ->Arg(48)
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
+
+void BM_FloorStep3D(benchmark::State& state) {
+  const mpm::Scene scene =
+      floor_scene(static_cast<int>(state.range(0)), static_cast<int>(state.range(1)));
+  mpm::Solver<3> solver(scene);
+  const double dt = solver.stable_dt(0.3);
+  for (int k = 0; k < 5; ++k) solver.step(dt);  // settle onto the floor
+  for (auto _ : state) solver.step(dt);
+  std::size_t in_layer = 0;
+  for (const auto& w : solver.dual_walls()) in_layer += w.layer_particles;
+  state.SetItemsProcessed(static_cast<int64_t>(state.iterations()) *
+                          static_cast<int64_t>(solver.particle_count()));
+  state.counters["particles"] = static_cast<double>(solver.particle_count());
+  state.counters["in_layer"] =
+      static_cast<double>(in_layer) / static_cast<double>(solver.particle_count());
+}
+BENCHMARK(BM_FloorStep3D)
+    ->ArgsProduct({{32}, {0, 1, 2}})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
 
