@@ -1,5 +1,6 @@
 // Surface-mesh import/export through assimp, into the plain arrays of triangle_mesh.hpp.
 
+#include "format.hpp"
 #include "mpmgeom/triangle_mesh.hpp"
 
 #include <assimp/config.h>
@@ -45,16 +46,8 @@ std::string one_line(std::string text) {
 }
 
 // std::to_string(double) prints fixed 6 decimals, which turns 1e-9 into "0.000000".
-std::string format_number(double x) {
-  std::ostringstream out;
-  out << x;
-  return out.str();
-}
-
-std::string format_point(const Eigen::Vector3d& p) {
-  return '(' + format_number(p.x()) + ", " + format_number(p.y()) + ", " + format_number(p.z()) +
-         ')';
-}
+using detail::format_number;
+using detail::format_point;
 
 std::string lower_extension(const fs::path& file) {
   std::string ext = file.extension().string();

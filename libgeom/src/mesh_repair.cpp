@@ -12,6 +12,7 @@
 // so parts follow their faces and messages can name faces the way the caller numbers them.
 
 #include "mpmgeom/mesh_repair.hpp"
+#include "format.hpp"
 
 #include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
 #include <CGAL/Polygon_mesh_processing/connected_components.h>
@@ -65,16 +66,8 @@ constexpr std::size_t kNone = std::numeric_limits<std::size_t>::max();
   throw MeshError("mesh '" + name + "': " + defect);
 }
 
-std::string format_number(double x) {
-  std::ostringstream out;
-  out << x;
-  return out.str();
-}
-
-std::string format_point(const Eigen::Vector3d& p) {
-  return '(' + format_number(p.x()) + ", " + format_number(p.y()) + ", " + format_number(p.z()) +
-         ')';
-}
+using detail::format_number;
+using detail::format_point;
 
 std::string format_point(const Point& p) {
   return format_point(Eigen::Vector3d(p.x(), p.y(), p.z()));

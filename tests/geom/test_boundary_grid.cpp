@@ -3,6 +3,7 @@
 // cylinders, local shrinking in concave regions, sub-layers, and the alpha-basis maps.
 
 #include "mpmgeom/boundary_grid.hpp"
+#include "support/shapes.hpp"
 
 #include <gtest/gtest.h>
 
@@ -23,6 +24,7 @@
 
 namespace {
 
+using mpm::test::icosphere;
 using mpmgeom::BoundaryGrid;
 using mpmgeom::LayerOptions;
 using mpmgeom::LayerReport;
@@ -53,53 +55,6 @@ TriangleMesh planar_square(int n, double side) {
   }
   mesh.part = Eigen::VectorXi::Zero(mesh.F.rows());
   mesh.part_names = {"plane"};
-  return mesh;
-}
-
-/// Icosahedron subdivided `level` times, vertices on the sphere of radius R about the origin;
-/// triangle normals outward, or inward if !outward.
-TriangleMesh icosphere(int level, double R, bool outward) {
-  const double p = (1.0 + std::sqrt(5.0)) / 2.0;
-  std::vector<Eigen::Vector3d> V = {{-1, p, 0}, {1, p, 0}, {-1, -p, 0}, {1, -p, 0},
-                                    {0, -1, p}, {0, 1, p}, {0, -1, -p}, {0, 1, -p},
-                                    {p, 0, -1}, {p, 0, 1}, {-p, 0, -1}, {-p, 0, 1}};
-  std::vector<std::array<int, 3>> F = {{0, 11, 5}, {0, 5, 1},  {0, 1, 7},   {0, 7, 10}, {0, 10, 11},
-                                       {1, 5, 9},  {5, 11, 4}, {11, 10, 2}, {10, 7, 6}, {7, 1, 8},
-                                       {3, 9, 4},  {3, 4, 2},  {3, 2, 6},   {3, 6, 8},  {3, 8, 9},
-                                       {4, 9, 5},  {2, 4, 11}, {6, 2, 10},  {8, 6, 7},  {9, 8, 1}};
-  for (auto& v : V) v = v.normalized();
-  for (int l = 0; l < level; ++l) {
-    std::map<std::pair<int, int>, int> midpoint;
-    auto mid = [&](int a, int b) {
-      const auto key = std::minmax(a, b);
-      const auto it = midpoint.find(key);
-      if (it != midpoint.end()) return it->second;
-      V.push_back((V[a] + V[b]).normalized());
-      return midpoint[key] = static_cast<int>(V.size()) - 1;
-    };
-    std::vector<std::array<int, 3>> finer;
-    for (const auto& [a, b, c] : F) {
-      const int ab = mid(a, b), bc = mid(b, c), ca = mid(c, a);
-      finer.push_back({a, ab, ca});
-      finer.push_back({b, bc, ab});
-      finer.push_back({c, ca, bc});
-      finer.push_back({ab, bc, ca});
-    }
-    F.swap(finer);
-  }
-  TriangleMesh mesh;
-  mesh.V.resize(static_cast<Eigen::Index>(V.size()), 3);
-  for (std::size_t v = 0; v < V.size(); ++v) mesh.V.row(static_cast<Eigen::Index>(v)) = R * V[v];
-  mesh.F.resize(static_cast<Eigen::Index>(F.size()), 3);
-  for (std::size_t f = 0; f < F.size(); ++f) {
-    const auto& [a, b, c] = F[f];
-    if (outward) {
-      mesh.F.row(static_cast<Eigen::Index>(f)) << a, b, c;
-    } else {
-      mesh.F.row(static_cast<Eigen::Index>(f)) << a, c, b;
-    }
-  }
-  mesh.part_names = {"sphere"};
   return mesh;
 }
 

@@ -4,6 +4,7 @@
 
 #include "mpmgeom/mesh_repair.hpp"
 #include "mpmgeom/triangle_mesh.hpp"
+#include "support/shapes.hpp"
 
 #include <gtest/gtest.h>
 
@@ -24,6 +25,7 @@
 namespace {
 
 namespace fs = std::filesystem;
+using mpm::test::icosphere;
 using mpmgeom::load_mesh;
 using mpmgeom::MeshError;
 using mpmgeom::remesh_isotropic;
@@ -48,45 +50,6 @@ TriangleMesh cube() {
       1, 2, 6, 1, 6, 5;
   m.part = Eigen::VectorXi::Zero(12);
   m.part_names = {"cube"};
-  return m;
-}
-
-// Icosahedron refined `levels` times by splitting every triangle in four, vertices projected
-// onto the sphere of radius `radius` about the origin; outward, one part.
-TriangleMesh icosphere(int levels, double radius = 1.0) {
-  const double t = (1.0 + std::sqrt(5.0)) / 2.0;
-  std::vector<Eigen::Vector3d> v = {{-1, t, 0}, {1, t, 0}, {-1, -t, 0}, {1, -t, 0},
-                                    {0, -1, t}, {0, 1, t}, {0, -1, -t}, {0, 1, -t},
-                                    {t, 0, -1}, {t, 0, 1}, {-t, 0, -1}, {-t, 0, 1}};
-  for (auto& p : v) p.normalize();
-  std::vector<std::array<int, 3>> f = {{0, 11, 5}, {0, 5, 1},  {0, 1, 7},   {0, 7, 10}, {0, 10, 11},
-                                       {1, 5, 9},  {5, 11, 4}, {11, 10, 2}, {10, 7, 6}, {7, 1, 8},
-                                       {3, 9, 4},  {3, 4, 2},  {3, 2, 6},   {3, 6, 8},  {3, 8, 9},
-                                       {4, 9, 5},  {2, 4, 11}, {6, 2, 10},  {8, 6, 7},  {9, 8, 1}};
-  for (int level = 0; level < levels; ++level) {
-    std::map<std::pair<int, int>, int> midpoint;
-    auto mid = [&](int a, int b) {
-      const auto key = std::minmax(a, b);
-      const auto [it, inserted] = midpoint.try_emplace(key, static_cast<int>(v.size()));
-      if (inserted) v.push_back((v[a] + v[b]).normalized());
-      return it->second;
-    };
-    std::vector<std::array<int, 3>> finer;
-    for (const auto& [a, b, c] : f) {
-      const int ab = mid(a, b), bc = mid(b, c), ca = mid(c, a);
-      finer.insert(finer.end(), {{a, ab, ca}, {b, bc, ab}, {c, ca, bc}, {ab, bc, ca}});
-    }
-    f = std::move(finer);
-  }
-  TriangleMesh m;
-  m.V.resize(static_cast<Eigen::Index>(v.size()), 3);
-  for (std::size_t i = 0; i < v.size(); ++i) m.V.row(static_cast<Eigen::Index>(i)) = radius * v[i];
-  m.F.resize(static_cast<Eigen::Index>(f.size()), 3);
-  for (std::size_t i = 0; i < f.size(); ++i) {
-    m.F.row(static_cast<Eigen::Index>(i)) << f[i][0], f[i][1], f[i][2];
-  }
-  m.part = Eigen::VectorXi::Zero(m.F.rows());
-  m.part_names = {"sphere"};
   return m;
 }
 
