@@ -5,6 +5,7 @@
 // Side_of_triangle_mesh (exact predicates) and, for boxes, against the analytic answer.
 
 #include "mpmgeom/locator.hpp"
+#include "support/shapes.hpp"
 
 #include <CGAL/AABB_face_graph_triangle_primitive.h>
 #include <CGAL/AABB_traits.h>
@@ -31,6 +32,8 @@
 #include <vector>
 
 namespace {
+
+using mpm::test::icosphere;
 
 using mpmgeom::BoundaryGrid;
 using mpmgeom::ClosedSurface;
@@ -464,46 +467,6 @@ TriangleMesh split_box(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi, int
         }
       }
     }
-  }
-  return b.mesh();
-}
-
-/// Unit icosphere: an icosahedron subdivided `levels` times, vertices on the unit sphere.
-TriangleMesh icosphere(int levels) {
-  const double g = (1.0 + std::sqrt(5.0)) / 2.0;
-  std::vector<Eigen::Vector3d> v = {{-1, g, 0}, {1, g, 0}, {-1, -g, 0}, {1, -g, 0},
-                                    {0, -1, g}, {0, 1, g}, {0, -1, -g}, {0, 1, -g},
-                                    {g, 0, -1}, {g, 0, 1}, {-g, 0, -1}, {-g, 0, 1}};
-  for (auto& x : v) x.normalize();
-  std::vector<std::array<int, 3>> f = {{0, 11, 5}, {0, 5, 1},  {0, 1, 7},   {0, 7, 10}, {0, 10, 11},
-                                       {1, 5, 9},  {5, 11, 4}, {11, 10, 2}, {10, 7, 6}, {7, 1, 8},
-                                       {3, 9, 4},  {3, 4, 2},  {3, 2, 6},   {3, 6, 8},  {3, 8, 9},
-                                       {4, 9, 5},  {2, 4, 11}, {6, 2, 10},  {8, 6, 7},  {9, 8, 1}};
-  for (int level = 0; level < levels; ++level) {
-    std::map<std::pair<int, int>, int> midpoint;
-    const auto middle = [&](int a, int b) {
-      const auto key = std::minmax(a, b);
-      const auto [it, inserted] = midpoint.try_emplace({key.first, key.second}, 0);
-      if (inserted) {
-        v.push_back((v[static_cast<std::size_t>(a)] + v[static_cast<std::size_t>(b)]).normalized());
-        it->second = static_cast<int>(v.size()) - 1;
-      }
-      return it->second;
-    };
-    std::vector<std::array<int, 3>> finer;
-    for (const auto& t : f) {
-      const int ab = middle(t[0], t[1]), bc = middle(t[1], t[2]), ca = middle(t[2], t[0]);
-      finer.push_back({t[0], ab, ca});
-      finer.push_back({t[1], bc, ab});
-      finer.push_back({t[2], ca, bc});
-      finer.push_back({ab, bc, ca});
-    }
-    f = std::move(finer);
-  }
-  MeshBuilder b;
-  for (const auto& t : f) {
-    b.triangle(v[static_cast<std::size_t>(t[0])], v[static_cast<std::size_t>(t[1])],
-               v[static_cast<std::size_t>(t[2])]);
   }
   return b.mesh();
 }
