@@ -303,7 +303,19 @@ void Solver<D>::layer_couple(bool remapped) {
       // and leaves well-posed systems unchanged to round-off.
       const double shift = 1e-10 * S.diagonal().maxCoeff();
       for (Eigen::Index i = 0; i < k; ++i) S.coeffRef(i, i) += shift;
-      w.schur->compute(S);
+      // The ordering (AMD) depends only on the sparsity, which changes only when nodes or
+      // multipliers switch on or off: analyse it then, factorise every step.
+      std::size_t hash = static_cast<std::size_t>(S.nonZeros()) * 1000003U + S.rows();
+      for (Eigen::Index c = 0; c < S.outerSize(); ++c) {
+        for (Eigen::SparseMatrix<double>::InnerIterator it(S, c); it; ++it) {
+          hash = hash * 31U + static_cast<std::size_t>(it.row() * 7919 + c);
+        }
+      }
+      if (hash != w.pattern_hash) {
+        w.schur->analyzePattern(S);
+        w.pattern_hash = hash;
+      }
+      w.schur->factorize(S);
     }
     if (w.active_multipliers.empty() || w.schur->info() != Eigen::Success) continue;
 

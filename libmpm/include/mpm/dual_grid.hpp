@@ -45,7 +45,8 @@ struct DualWall {
   /// cannot be moved).
   std::unique_ptr<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>> schur =
       std::make_unique<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>>();
-  double min_cell_size = 0.0;  ///< for the CFL limit
+  std::size_t pattern_hash = 0;  ///< sparsity of the last factorised S: reuse its ordering
+  double min_cell_size = 0.0;    ///< for the CFL limit
   std::size_t layer_particles = 0;
 };
 
