@@ -375,7 +375,7 @@ void Solver<D>::layer_gather(double dt) {
     }
     if (apic) {
       P.velocity[p] = value;
-      if (usl) P.affine[p] = L;  // MUSL: from the remapped field (grid_to_particles)
+      if (usl) P.affine[p] = L;  // MUSL: from the remapped field, layer_gather_gradient()
     } else {
       P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
     }
@@ -399,6 +399,7 @@ void Solver<D>::layer_remap() {
 template <int D>
 void Solver<D>::layer_gather_gradient() {
   auto& P = particles;
+  const bool apic = scene_.transfer == Transfer::apic;
   for (std::size_t p = 0; p < P.size(); ++p) {
     if (P.layer_wall[p] < 0) continue;
     const DualWall<D>& w = dual_[P.layer_wall[p]];
@@ -406,6 +407,12 @@ void Solver<D>::layer_gather_gradient() {
     Mat<D> L = Mat<D>::Zero();
     for (int k = 0; k < st.count; ++k) L += w.velocity[st.node[k]] * st.dN[k].transpose();
     P.velocity_gradient[p] = L;
+    // APIC on the linear boundary basis: C_p = grad v (exact for affine fields, Jiang et al.
+    // 2015 section 5.3) taken from the remapped field, a mass-weighted average, rather than from
+    // v^{n+1}, which sees nearly empty layer nodes at full weight; the remap of an affine field
+    // is affine, so exactness is kept. (On the standard grid's linear/GIMP kernels the same
+    // choice made the bar impact unstable, so they keep C_p from v^{n+1}.)
+    if (apic) P.affine[p] = L;
   }
 }
 

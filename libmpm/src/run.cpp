@@ -171,12 +171,10 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   double next_history = scene.history_interval;
   double min_dt = std::numeric_limits<double>::infinity(), max_dt = 0.0;
   std::vector<std::string> warnings;
-  if (scene.transfer == Transfer::apic && scene.update == UpdateScheme::usl &&
-      (scene.shape != ShapeKind::bspline2 || !scene.dual_walls.empty())) {
+  if (scene.transfer == Transfer::apic && scene.shape != ShapeKind::bspline2) {
     warnings.emplace_back(
-        "APIC with USL and a linear basis (linear or GIMP kernel, boundary grids) takes the "
-        "affine matrix from nearly empty nodes at full weight and is prone to the cell-crossing "
-        "instability; use MUSL");
+        "APIC with the linear or GIMP kernel takes the affine matrix from nearly empty nodes at "
+        "full weight and is prone to the cell-crossing instability; prefer bspline2 or FLIP");
   }
   for (const auto& w : warnings) std::cerr << "mpm: warning: " << w << '\n';
   std::optional<std::string> failure;

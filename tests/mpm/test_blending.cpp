@@ -12,14 +12,14 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <cstdio>
 #include <functional>
 #include <limits>
 #include <numbers>
-#include <sstream>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <Eigen/Geometry>
@@ -35,7 +35,7 @@ using nlohmann::json;
 constexpr double kGravity = 9.81;
 /// A particle centre may sit at most this many grid spacings behind the wall. The wall acts on
 /// node velocities, so a particle drifts through only by the interpolation error of its normal
-/// velocity over one step; 0.05 h is a fifth of the h/4 of material a particle carries in front
+/// velocity over a step; 0.05 h is a fifth of the h/4 of material a particle carries in front
 /// of its centre (2 particles per cell), so anything beyond it means the wall leaks, not
 /// round-off.
 constexpr double kBehindTolerance = 0.05;
@@ -48,7 +48,7 @@ void run_until(Simulation& sim, const Scene& scene, double end,
     const double dt = std::min(sim.stable_dt(scene.cfl), end - t);
     sim.step(dt);
     t += dt;
-    ASSERT_FALSE(sim.fault().has_value()) << *sim.fault();
+    ASSERT_FALSE(sim.fault().has_value()) << "t = " << t << ": " << *sim.fault();
     observe(t, dt);
   }
 }
@@ -78,6 +78,7 @@ json vec_json(const Eigen::VectorXd& v) {
   return a;
 }
 
+/// Separable contact: frictionless slip, or Coulomb friction for mu > 0.
 json contact_json(double mu) {
   json c = {{"separable", true}};
   if (mu > 0.0) {
@@ -89,9 +90,47 @@ json contact_json(double mu) {
   return c;
 }
 
+json dual_point_wall(double x, const std::string& method, double thickness, int layers) {
+  json wall = contact_json(0.0);
+  wall["name"] = "wall";
+  wall["surface"] = {{"type", "point"}, {"position", x}, {"side", 1}};
+  wall["method"] = method;
+  wall["thickness"] = thickness;
+  wall["layers"] = layers;
+  return wall;
+}
+
+/// Points of a straight wall from origin + u0 * dir to origin + u1 * dir in segments of about
+/// `segment` (a single segment if it is longer than the wall), as a JSON polyline.
+json polyline_json(const Eigen::Vector2d& origin, const Eigen::Vector2d& dir, double u0, double u1,
+                   double segment) {
+  const int segments = std::max(1, static_cast<int>(std::lround((u1 - u0) / segment)));
+  json points = json::array();
+  for (int i = 0; i <= segments; ++i) {
+    const Eigen::Vector2d x = origin + (u0 + (u1 - u0) * i / segments) * dir;
+    points.push_back(json::array({x.x(), x.y()}));
+  }
+  return points;
+}
+
+/// Grid box around a set of points, `margin` cells beyond them, on multiples of h.
+std::pair<Eigen::VectorXd, Eigen::VectorXd> grid_box(const std::vector<Eigen::VectorXd>& points,
+                                                     double h, int margin) {
+  Eigen::VectorXd lo = points.front(), hi = points.front();
+  for (const auto& x : points) {
+    lo = lo.cwiseMin(x);
+    hi = hi.cwiseMax(x);
+  }
+  for (Eigen::Index d = 0; d < lo.size(); ++d) {
+    lo[d] = h * (std::floor(lo[d] / h) - margin);
+    hi[d] = h * (std::ceil(hi[d] / h) + margin);
+  }
+  return {lo, hi};
+}
+
 // ---------------------------------------------------------------------------------------------
 // 1D: steel bar (E = 200 GPa, rho = 7850, L = 1, v0 = 1) against a rigid wall. Exact: wall
-// stress rho c v0 for 2L/c, then the bar leaves at -v0.
+// stress rho c v0 for 2L/c, then the bar leaves at +v0.
 
 constexpr double kBarH = 0.01;
 const double kBarC = std::sqrt(2.0e11 / 7850.0);
@@ -113,7 +152,8 @@ json bar_scene(double grid_min, double x0, const json& wall, const std::string& 
       {"bodies",
        {{{"name", "bar"},
          {"material", "steel"},
-         {"shape", {{"type", "segment"}, {"min", json::array({x0})}, {"max", json::array({x0 + 1.0})}}},
+         {"shape",
+          {{"type", "segment"}, {"min", json::array({x0})}, {"max", json::array({x0 + 1.0})}}},
          {"particles_per_cell", 2},
          {"velocity", json::array({-1.0})}}}},
       {"walls", json::array({wall})},
@@ -126,7 +166,7 @@ struct BarResult {
   double plateau = 0.0;              ///< mean over the middle 60% of the exact contact, / sigma0
   double contact_time = 0.0;         ///< time the wall stress exceeds half of rho c v0
   double rebound = 0.0;              ///< centre-of-mass velocity at the end, / v0
-  double min_distance = 0.0;         ///< smallest (x_p - x_wall), over the run, / h
+  double min_distance = 0.0;         ///< smallest x_p - x_wall over the run, / h
 };
 
 /// Runs a bar scene. The particles are shifted by `shift` after seeding: the lattice of a
@@ -162,16 +202,6 @@ BarResult bar_impact(const json& doc, double wall_x, double shift) {
   return r;
 }
 
-json dual_point_wall(double x, const std::string& method, double thickness, int layers) {
-  json wall = contact_json(0.0);
-  wall["name"] = "wall";
-  wall["surface"] = {{"type", "point"}, {"position", x}, {"side", 1}};
-  wall["method"] = method;
-  wall["thickness"] = thickness;
-  wall["layers"] = layers;
-  return wall;
-}
-
 // With the wall on a grid line and a layer one cell thick, the boundary grid's linear basis is
 // the standard grid's linear basis on that cell: mortar must give standard MPM's answer (a box
 // wall on the same line), whatever error that answer itself has.
@@ -198,11 +228,11 @@ TEST(BlendingBar1D, MortarWithWallOnGridLineMatchesStandardMpm) {
   std::printf("standard: plateau %.6f contact %.6f (2L/c) rebound %.6f; mortar: %.6f %.6f %.6f\n",
               standard.plateau, standard.contact_time / kBarDuration, standard.rebound,
               mortar.plateau, mortar.contact_time / kBarDuration, mortar.rebound);
-  std::printf("max |f_mortar - f_standard| / sigma0 = %.3e (standard vs exact on the plateau: "
-              "%.3e)\n",
-              worst, worst_exact);
-  // Same discretisation: the histories agree to round-off (far inside the discretisation error
-  // of either, which is the standard run's own deviation from the exact step).
+  std::printf(
+      "max |f_mortar - f_standard| / sigma0 = %.3e (standard vs exact on the plateau: %.3e)\n",
+      worst, worst_exact);
+  // Same discretisation: the histories agree to round-off, far inside the discretisation error
+  // (the standard run's own deviation from the exact step).
   EXPECT_LT(worst, 1e-6);
   EXPECT_LT(worst, 0.01 * worst_exact);
   EXPECT_NEAR(mortar.plateau, standard.plateau, 1e-6);
@@ -212,37 +242,557 @@ TEST(BlendingBar1D, MortarWithWallOnGridLineMatchesStandardMpm) {
   for (const BarResult* r : {&standard, &mortar}) {
     EXPECT_NEAR(r->plateau, 1.0, 0.05);
     EXPECT_NEAR(r->contact_time, kBarDuration, 2.0 * kBarH / kBarC);
-    EXPECT_NEAR(-r->rebound, 1.0, 0.05);
+    EXPECT_NEAR(r->rebound, 1.0, 0.05);
     EXPECT_GE(r->min_distance, -kBehindTolerance);
   }
   std::printf("took %.2f s\n", seconds_since(start));
 }
 
-// The wall swept across one grid cell in 20 steps (layer thickness h): the plateau, the contact
-// time and the rebound must meet the exact answer at every offset.
-TEST(BlendingBar1D, MortarPlateauContactAndReboundAtTwentyOffsets) {
+// The wall swept across one grid cell in 20 steps (mortar, layer thickness h): the plateau and
+// the rebound must meet the exact answer at every offset, for every shape function. The contact
+// time (wall stress above half the plateau) must be within 2h/c of 2L/c for the linear kernel
+// of the talk; for GIMP and B-splines it is recorded, not asserted: their wider stencils release
+// the bar gradually over ~2% of 2L/c, and with bspline2 the half-height duration at offset 0.2 h
+// is 0.9897 * 2L/c, one step (0.25% of 2L/c) beyond the bound, while the plateau is within 0.6%.
+class BlendingBarSweep : public ::testing::TestWithParam<const char*> {};
+
+TEST_P(BlendingBarSweep, MortarPlateauContactAndReboundAtTwentyOffsets) {
   const auto start = std::chrono::steady_clock::now();
+  const std::string shape = GetParam();
   double worst_plateau = 0.0, worst_contact = 0.0, worst_rebound = 0.0;
   for (int k = 0; k < 20; ++k) {
     const double offset = k / 20.0;
     const double xw = 0.2 + offset * kBarH;
     const BarResult r = bar_impact(
-        bar_scene(0.0, 0.2, dual_point_wall(xw, "mortar", kBarH, 1), "linear"), xw, xw - 0.2);
-    std::printf("offset %.2f h: plateau %.5f contact %.5f (2L/c) rebound %.5f min distance %+.4f h\n",
-                offset, r.plateau, r.contact_time / kBarDuration, -r.rebound, r.min_distance);
-    EXPECT_NEAR(r.plateau, 1.0, 0.05) << "offset " << offset;
-    EXPECT_NEAR(r.contact_time, kBarDuration, 2.0 * kBarH / kBarC) << "offset " << offset;
-    EXPECT_NEAR(-r.rebound, 1.0, 0.05) << "offset " << offset;
-    EXPECT_GE(r.min_distance, -kBehindTolerance) << "offset " << offset;
+        bar_scene(0.0, 0.2, dual_point_wall(xw, "mortar", kBarH, 1), shape), xw, xw - 0.2);
+    std::printf(
+        "%s offset %.2f h: plateau %.5f contact %.5f (2L/c) rebound %.5f min distance "
+        "%+.4f h\n",
+        shape.c_str(), offset, r.plateau, r.contact_time / kBarDuration, r.rebound, r.min_distance);
+    EXPECT_NEAR(r.plateau, 1.0, 0.05) << shape << " offset " << offset;
+    if (shape == "linear") {
+      EXPECT_NEAR(r.contact_time, kBarDuration, 2.0 * kBarH / kBarC) << "offset " << offset;
+    }
+    EXPECT_NEAR(r.rebound, 1.0, 0.05) << shape << " offset " << offset;
+    EXPECT_GE(r.min_distance, -kBehindTolerance) << shape << " offset " << offset;
     worst_plateau = std::max(worst_plateau, std::abs(r.plateau - 1.0));
     worst_contact = std::max(worst_contact, std::abs(r.contact_time / kBarDuration - 1.0));
-    worst_rebound = std::max(worst_rebound, std::abs(-r.rebound - 1.0));
+    worst_rebound = std::max(worst_rebound, std::abs(r.rebound - 1.0));
   }
   RecordProperty("worst_plateau_error", std::to_string(worst_plateau));
   RecordProperty("worst_contact_time_error", std::to_string(worst_contact));
   RecordProperty("worst_rebound_error", std::to_string(worst_rebound));
+  std::printf("%s: worst plateau error %.4f, contact time error %.4f, rebound error %.4f\n",
+              shape.c_str(), worst_plateau, worst_contact, worst_rebound);
   std::printf("took %.2f s\n", seconds_since(start));
 }
+
+INSTANTIATE_TEST_SUITE_P(Shapes, BlendingBarSweep, ::testing::Values("linear", "gimp", "bspline2"));
+
+// ---------------------------------------------------------------------------------------------
+// Free flight across Phi: a block with a non-uniform velocity (a standing wave on a drift away
+// from the wall) starts inside the layer, clear of the wall's own cells, and leaves through Phi.
+// Nothing acts on it but its own stress and the interface coupling, so the total momentum must
+// keep its initial value: mortar's interface impulses are equal and opposite, one-way's are not
+// (it only corrects the standard grid).
+//
+// The scenes set the standard solver's mass_threshold to 0: with the default (1e-9 of the mean
+// particle mass) standard MPM itself drops the momentum given to nearly empty B-spline nodes,
+// ~1e-9 relative over this run with no wall at all, which would hide the coupling's own error.
+
+struct FreeFlight {
+  double momentum_error = 0.0;   ///< max |P(t) - P(0)| / |P(0)| over the run
+  double grid_mass_error = 0.0;  ///< max |sum of both grids' nodal masses - particle mass| / mass
+  double wall_impulse = 0.0;     ///< max |impulse from the wall| over the run (must stay 0)
+  std::size_t max_layer_particles = 0, final_layer_particles = 0;
+  double min_distance = 0.0;  ///< smallest signed distance to the wall / h
+};
+
+template <int D>
+FreeFlight free_flight(const json& doc, const Vec<D>& origin, const Vec<D>& normal) {
+  const Scene scene = parse_scene(doc, "<free flight>");
+  Solver<D> s(scene);
+  const double mass = total_mass(s);
+  const Eigen::Vector3d p0 = s.momentum();
+  FreeFlight r;
+  r.min_distance = min_signed_distance<D>(s, origin, normal) / scene.spacing;
+  run_until(s, scene, scene.end_time, [&](double, double) {
+    r.momentum_error = std::max(r.momentum_error, (s.momentum() - p0).norm() / p0.norm());
+    // This step's nodal masses: each particle must have been given to exactly one grid.
+    double grid_mass = 0.0;
+    for (double m : s.grid.mass) grid_mass += m;
+    for (const auto& w : s.dual_walls()) {
+      for (double m : w.mass) grid_mass += m;
+    }
+    r.grid_mass_error = std::max(r.grid_mass_error, std::abs(grid_mass - mass) / mass);
+    r.wall_impulse = std::max(r.wall_impulse, s.wall_impulses()[0].norm());
+    r.max_layer_particles = std::max(r.max_layer_particles, s.dual_walls()[0].layer_particles);
+    r.final_layer_particles = s.dual_walls()[0].layer_particles;
+    r.min_distance =
+        std::min(r.min_distance, min_signed_distance<D>(s, origin, normal) / scene.spacing);
+  });
+  return r;
+}
+
+/// Soft elastic material (c ~ 10 m/s) so that the block crosses the layer in a few hundred
+/// steps.
+json soft_material() {
+  return {{"name", "soft"},
+          {"model", "linear_elastic"},
+          {"density", 1000.0},
+          {"youngs_modulus", 1.0e5},
+          {"poisson_ratio", 0.3}};
+}
+
+/// 1D: wall at 0.2 (material at x > 0.2), layer 3h in three cells; the bar starts 1.5h from the
+/// wall (in the second cell, so Gamma's cell is empty) and drifts out at 0.2 +- 0.1 m/s.
+json free_flight_1d(const std::string& method) {
+  const double h = 0.01, x0 = 0.2 + 1.5 * h, L = 0.3;
+  return {
+      {"dimension", 1},
+      {"grid", {{"min", json::array({0.0})}, {"max", json::array({1.0})}, {"spacing", h}}},
+      {"shape_function", "linear"},
+      {"scheme",
+       {{"update", "musl"}, {"transfer", "flip"}, {"flip_blend", 1.0}, {"mass_threshold", 0.0}}},
+      {"materials", json::array({soft_material()})},
+      {"bodies",
+       {{{"name", "bar"},
+         {"material", "soft"},
+         {"shape",
+          {{"type", "segment"}, {"min", json::array({x0})}, {"max", json::array({x0 + L})}}},
+         {"particles_per_cell", 2},
+         {"velocity", json::array({0.2})},
+         {"velocity_sine",
+          {{"amplitude", json::array({0.1})},
+           {"wavenumber", 2.0 * std::numbers::pi / L},
+           {"origin", x0}}}}}},
+      {"walls", json::array({dual_point_wall(0.2, method, 3.0 * h, 3)})},
+      {"time", {{"end", 0.1}, {"cfl", 0.5}}},
+  };
+}
+
+/// 2D: a wall at 30 degrees to the grid (segments of h), layer 3h in three cells; a block
+/// rotated to lie parallel to it starts 1.2h above it and leaves obliquely (0.2 m/s away from
+/// the wall, 0.4 m/s along it) with a standing wave of 0.1 m/s on top. Quadratic B-splines,
+/// MUSL, `transfer` "apic" or "flip".
+struct FreeFlight2D {
+  json doc;
+  Eigen::Vector2d origin, normal;
+};
+
+FreeFlight2D free_flight_2d(const std::string& method, const std::string& transfer) {
+  const double h = 0.05, theta_deg = 30.0, theta = theta_deg * std::numbers::pi / 180.0;
+  const Eigen::Vector2d origin(0.013, 0.027), along(std::cos(theta), -std::sin(theta)),
+      normal(std::sin(theta), std::cos(theta));
+  const double a = 0.3, b = 0.2;
+  const Eigen::Vector2d centre = origin + (1.2 * h + 0.5 * b) * normal;
+  const Eigen::Vector2d velocity = 0.2 * normal + 0.4 * along;
+  auto [lo, hi] =
+      grid_box({Eigen::VectorXd(origin - 0.5 * along), Eigen::VectorXd(origin + 0.8 * along),
+                Eigen::VectorXd(origin - 0.5 * along + 0.6 * normal),
+                Eigen::VectorXd(origin + 0.8 * along + 0.6 * normal)},
+               h, 4);
+  json wall = contact_json(0.0);
+  wall["name"] = "wall";
+  wall["surface"] = {{"type", "polyline"}, {"points", polyline_json(origin, along, -0.5, 0.8, h)}};
+  wall["method"] = method;
+  wall["thickness"] = 3.0 * h;
+  wall["layers"] = 3;
+  json scheme = {{"update", "musl"}, {"transfer", transfer}, {"mass_threshold", 0.0}};
+  json doc = {
+      {"dimension", 2},
+      {"grid", {{"min", vec_json(lo)}, {"max", vec_json(hi)}, {"spacing", h}}},
+      {"shape_function", "bspline2"},
+      {"scheme", scheme},
+      {"materials", json::array({soft_material()})},
+      {"bodies",
+       {{{"name", "block"},
+         {"material", "soft"},
+         {"shape",
+          {{"type", "box"},
+           {"min", json::array({centre.x() - 0.5 * a, centre.y() - 0.5 * b})},
+           {"max", json::array({centre.x() + 0.5 * a, centre.y() + 0.5 * b})},
+           {"rotation", -theta_deg}}},
+         {"particles_per_cell", 2},
+         {"velocity", json::array({velocity.x(), velocity.y()})},
+         {"velocity_sine",
+          {{"amplitude", json::array({0.1, 0.05})},
+           {"wavenumber", 2.0 * std::numbers::pi / a},
+           {"origin", centre.x()}}}}}},
+      {"walls", json::array({wall})},
+      {"time", {{"end", 0.6}, {"cfl", 0.5}}},
+  };
+  return {doc, origin, normal};
+}
+
+void report_free_flight(const char* label, const FreeFlight& r) {
+  std::printf(
+      "%s: momentum error %.3e, grid mass error %.3e, wall impulse %.3e, layer particles "
+      "max %zu final %zu, min distance %+.3f h\n",
+      label, r.momentum_error, r.grid_mass_error, r.wall_impulse, r.max_layer_particles,
+      r.final_layer_particles, r.min_distance);
+}
+
+/// The run really is a crossing without contact: particles start in the layer and all leave it,
+/// the wall never acts, and nothing goes behind it.
+void expect_clean_crossing(const FreeFlight& r) {
+  EXPECT_GT(r.max_layer_particles, 0U);
+  EXPECT_EQ(r.final_layer_particles, 0U);
+  EXPECT_EQ(r.wall_impulse, 0.0);
+  EXPECT_GE(r.min_distance, -kBehindTolerance);
+}
+
+TEST(BlendingFreeFlight, MortarConservesMassAndMomentum1D) {
+  const auto start = std::chrono::steady_clock::now();
+  const FreeFlight r = free_flight<1>(free_flight_1d("mortar"), Vec<1>(0.2), Vec<1>(1.0));
+  report_free_flight("1D mortar", r);
+  RecordProperty("momentum_error", std::to_string(r.momentum_error));
+  expect_clean_crossing(r);
+  EXPECT_LT(r.grid_mass_error, 1e-10);
+  EXPECT_LT(r.momentum_error, 1e-10);
+  std::printf("took %.2f s\n", seconds_since(start));
+}
+
+TEST(BlendingFreeFlight, MortarConservesMassAndMomentum2D) {
+  const auto start = std::chrono::steady_clock::now();
+  for (const char* transfer : {"apic", "flip"}) {
+    const FreeFlight2D scene = free_flight_2d("mortar", transfer);
+    const FreeFlight r = free_flight<2>(scene.doc, scene.origin, scene.normal);
+    report_free_flight((std::string("2D mortar ") + transfer).c_str(), r);
+    RecordProperty(std::string("momentum_error_") + transfer, std::to_string(r.momentum_error));
+    expect_clean_crossing(r);
+    EXPECT_LT(r.grid_mass_error, 1e-10) << transfer;
+    EXPECT_LT(r.momentum_error, 1e-10) << transfer;
+  }
+  std::printf("took %.2f s\n", seconds_since(start));
+}
+
+// One-way prescribes the boundary grid's velocity on the standard grid and never lets the
+// boundary grid feel the reaction: the interface impulses do not balance, and momentum is not
+// conserved (the finding of docs/blending.md: 0.28 relative in 1D, 0.14 in 2D with FLIP, against
+// 1e-15 for mortar). Asserted here so a change that makes one-way conservative is noticed.
+TEST(BlendingFreeFlight, OneWayDoesNotConserveMomentum1D) {
+  const auto start = std::chrono::steady_clock::now();
+  const FreeFlight r = free_flight<1>(free_flight_1d("one-way"), Vec<1>(0.2), Vec<1>(1.0));
+  report_free_flight("1D one-way", r);
+  RecordProperty("momentum_error", std::to_string(r.momentum_error));
+  EXPECT_TRUE(std::isfinite(r.momentum_error));
+  EXPECT_GT(r.momentum_error, 1e-3);
+  EXPECT_LT(r.grid_mass_error, 1e-10);
+  expect_clean_crossing(r);
+  std::printf("took %.2f s\n", seconds_since(start));
+}
+
+// Same in 2D with FLIP. With APIC at CFL 0.5, one-way is unstable on this scene (velocities grow
+// from 0.5 to ~6 m/s between t = 0.12 and 0.37 s and a particle inverts, at wall angles 0, 10, 30
+// and 45 degrees alike; finite at CFL 0.25 with a momentum error ~1): recorded in
+// docs/blending.md as a failure of the one-way method, which mortar (stable here) replaces.
+TEST(BlendingFreeFlight, OneWayDoesNotConserveMomentum2D) {
+  const auto start = std::chrono::steady_clock::now();
+  const FreeFlight2D scene = free_flight_2d("one-way", "flip");
+  const FreeFlight r = free_flight<2>(scene.doc, scene.origin, scene.normal);
+  report_free_flight("2D one-way flip", r);
+  RecordProperty("momentum_error", std::to_string(r.momentum_error));
+  EXPECT_TRUE(std::isfinite(r.momentum_error));
+  EXPECT_GT(r.momentum_error, 1e-3);
+  EXPECT_LT(r.grid_mass_error, 1e-10);
+  expect_clean_crossing(r);
+  std::printf("took %.2f s\n", seconds_since(start));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Block on an incline at angle theta (gravity along -y in 2D, -z in 3D), mortar, MUSL/APIC,
+// quadratic B-splines, h = 0.05, 2 particles per cell. Exact: the centre of mass moves
+// d = a t^2 / 2 downhill with a = g (sin theta - mu cos theta) (tan theta > mu), stays at rest
+// across the incline, and the wall's normal force is m g cos theta.
+//
+// The angles cover the orientations 8 to 43 degrees to the grid (theta and 90 - theta are mirror
+// images for the grid) while keeping tan(theta) well above mu = 0.3: at 20 degrees friction
+// cancels 82% of the downhill pull, so a 1% error in the friction impulse is a 5% error in d,
+// and standard MPM with a grid-aligned wall (gravity rotated instead) is itself 10.8% off there.
+
+constexpr double kInclineH = 0.05;
+constexpr double kInclineTime = 0.3;
+constexpr double kInclineAngles[] = {30.0, 36.0, 43.0, 50.0, 58.0, 66.0, 74.0, 82.0};
+
+json incline_doc(int dim, const Eigen::VectorXd& lo, const Eigen::VectorXd& hi, json body,
+                 json wall, double cfl) {
+  Eigen::VectorXd gravity = Eigen::VectorXd::Zero(dim);
+  gravity[dim - 1] = -kGravity;
+  return {
+      {"dimension", dim},
+      {"grid", {{"min", vec_json(lo)}, {"max", vec_json(hi)}, {"spacing", kInclineH}}},
+      {"shape_function", "bspline2"},
+      {"scheme", {{"update", "musl"}, {"transfer", "apic"}}},
+      {"gravity", vec_json(gravity)},
+      {"materials",
+       {{{"name", "m"},
+         {"model", "neo_hookean"},
+         {"density", 1000.0},
+         {"youngs_modulus", 2.0e6},
+         {"poisson_ratio", 0.3}}}},
+      {"bodies", json::array({std::move(body)})},
+      {"walls", json::array({std::move(wall)})},
+      {"time", {{"end", kInclineTime}, {"cfl", cfl}}},
+  };
+}
+
+json incline_wall(double mu, json surface) {
+  json wall = contact_json(mu);
+  wall["name"] = "incline";
+  wall["surface"] = std::move(surface);
+  wall["method"] = "mortar";
+  return wall;
+}
+
+/// An incline scene and its frame (padded to 3D): a point of the wall plane, the downhill unit
+/// vector and the unit normal into the material.
+struct InclineScene {
+  json doc;
+  Eigen::Vector3d origin, downhill, normal;
+};
+
+/// 2D: a straight polyline running downhill (the material on its left) in segments of about
+/// `segment`; the block (0.3 x 0.15) rotated to lie flat on it, 1e-6 above it.
+InclineScene incline_2d(double theta_deg, double mu, double segment, double cfl) {
+  const double theta = theta_deg * std::numbers::pi / 180.0;
+  const Eigen::Vector2d origin(0.013, 0.027), s(std::cos(theta), -std::sin(theta)),
+      n(std::sin(theta), std::cos(theta));
+  const double a = 0.3, b = 0.15, u0 = -0.4, u1 = 0.8;
+  const Eigen::Vector2d centre = origin + (0.5 * b + 1e-6) * n;
+  auto [lo, hi] = grid_box(
+      {Eigen::VectorXd(origin + u0 * s), Eigen::VectorXd(origin + u1 * s),
+       Eigen::VectorXd(origin + u0 * s + 0.5 * n), Eigen::VectorXd(origin + u1 * s + 0.5 * n)},
+      kInclineH, 4);
+  json body = {{"name", "block"},
+               {"material", "m"},
+               {"shape",
+                {{"type", "box"},
+                 {"min", json::array({centre.x() - 0.5 * a, centre.y() - 0.5 * b})},
+                 {"max", json::array({centre.x() + 0.5 * a, centre.y() + 0.5 * b})},
+                 {"rotation", -theta_deg}}},
+               {"particles_per_cell", 2}};
+  json surface = {{"type", "polyline"},
+                  {"points", polyline_json(origin, s, u0, u1, segment)},
+                  {"closed", false}};
+  InclineScene out;
+  out.doc = incline_doc(2, lo, hi, std::move(body), incline_wall(mu, std::move(surface)), cfl);
+  out.origin << origin, 0.0;
+  out.downhill << s, 0.0;
+  out.normal << n, 0.0;
+  return out;
+}
+
+/// A temporary folder for mesh files, one per test process, removed at the end of the test.
+class TempDir {
+ public:
+  TempDir()
+      : path_(std::filesystem::temp_directory_path() /
+              ("mpm_test_blending_" + std::to_string(::getpid()))) {
+    std::filesystem::create_directories(path_);
+  }
+  ~TempDir() {
+    std::error_code ec;
+    std::filesystem::remove_all(path_, ec);
+  }
+  TempDir(const TempDir&) = delete;
+  TempDir& operator=(const TempDir&) = delete;
+  [[nodiscard]] const std::filesystem::path& path() const { return path_; }
+
+ private:
+  std::filesystem::path path_;
+};
+
+/// 3D: the plane tilted by theta about the horizontal axis (cos 30, sin 30, 0), so that its
+/// normal has three non-zero components; a rectangle of it written as two triangles (normals
+/// into the material) and remeshed to h by the scene reader. The block (0.3 downhill, 0.2 across,
+/// 0.15 thick) is rotated so that its faces lie along the downhill, across and normal
+/// directions, 1e-6 above the plane.
+InclineScene incline_3d(double theta_deg, double mu, const std::filesystem::path& dir) {
+  const double theta = theta_deg * std::numbers::pi / 180.0;
+  const double phi = 30.0 * std::numbers::pi / 180.0;
+  const Eigen::Vector3d axis(std::cos(phi), std::sin(phi), 0.0);
+  const Eigen::Vector3d origin(0.013, 0.027, 0.011);
+  const Eigen::Vector3d n = Eigen::AngleAxisd(theta, axis) * Eigen::Vector3d::UnitZ();
+  const Eigen::Vector3d s = (-Eigen::Vector3d::UnitZ() + n.z() * n).normalized();
+  const Eigen::Vector3d t = n.cross(s);
+  const double a = 0.3, b = 0.2, c = 0.15, u0 = -0.25, u1 = 0.7, w = 0.2;
+
+  const Eigen::Vector3d corners[4] = {origin + u0 * s - w * t, origin + u1 * s - w * t,
+                                      origin + u1 * s + w * t, origin + u0 * s + w * t};
+  const std::filesystem::path mesh =
+      dir / ("incline_" + std::to_string(static_cast<int>(theta_deg)) + ".obj");
+  {
+    std::ofstream out(mesh);
+    out.precision(17);
+    for (const auto& x : corners) out << "v " << x.x() << ' ' << x.y() << ' ' << x.z() << '\n';
+    // (b - a) x (c - a) = (u1 - u0) * 2w * (s x t) = +n: into the material.
+    out << "f 1 2 3\nf 1 3 4\n";
+  }
+
+  std::vector<Eigen::VectorXd> points;
+  for (const auto& x : corners) {
+    points.emplace_back(x);
+    points.emplace_back(x + 0.3 * n);
+  }
+  auto [lo, hi] = grid_box(points, kInclineH, 2);
+
+  // Box axes (x, y, z) -> (downhill, across, normal), given to the scene as Rz * Ry * Rx.
+  Eigen::Matrix3d R;
+  R << s, t, n;
+  const Eigen::Vector3d zyx = R.eulerAngles(2, 1, 0);
+  const Eigen::Vector3d centre = origin + (0.5 * c + 1e-6) * n;
+  const double deg = 180.0 / std::numbers::pi;
+  json body = {
+      {"name", "block"},
+      {"material", "m"},
+      {"shape",
+       {{"type", "box"},
+        {"min", json::array({centre.x() - 0.5 * a, centre.y() - 0.5 * b, centre.z() - 0.5 * c})},
+        {"max", json::array({centre.x() + 0.5 * a, centre.y() + 0.5 * b, centre.z() + 0.5 * c})},
+        {"rotation", json::array({zyx[2] * deg, zyx[1] * deg, zyx[0] * deg})}}},
+      {"particles_per_cell", 2}};
+  json surface = {{"type", "mesh"}, {"file", mesh.string()}, {"remesh", true}};
+  InclineScene out;
+  out.doc = incline_doc(3, lo, hi, std::move(body), incline_wall(mu, std::move(surface)), 0.4);
+  out.origin = origin;
+  out.downhill = s;
+  out.normal = n;
+  return out;
+}
+
+struct InclineResult {
+  double displacement = 0.0;    ///< centre-of-mass displacement downhill at the end / exact
+  double normal_speed = 0.0;    ///< max |v_cm . n| over the run / (g T)
+  double normal_force = 0.0;    ///< mean wall force along n over the run / (m g cos theta)
+  double friction_force = 0.0;  ///< mean wall force uphill / (mu m g cos theta), mu > 0
+  double min_distance = 0.0;    ///< smallest signed distance to the wall plane / h
+  double seconds = 0.0;
+};
+
+template <int D>
+InclineResult run_incline(const InclineScene& in, double theta_deg, double mu) {
+  const auto start = std::chrono::steady_clock::now();
+  const Scene scene = parse_scene(in.doc, "<incline>");
+  Solver<D> s(scene);
+  const Vec<D> origin = in.origin.template head<D>(), n = in.normal.template head<D>(),
+               downhill = in.downhill.template head<D>();
+  // The block's rotation takes its axes to (downhill, [across,] normal), and it was seeded flat
+  // on the wall, its bottom row h/4 above it.
+  EXPECT_LT((scene.bodies[0].rotation.col(0) - in.downhill).norm(), 1e-9) << theta_deg;
+  EXPECT_LT((scene.bodies[0].rotation.col(D - 1) - in.normal).norm(), 1e-9) << theta_deg;
+  EXPECT_NEAR(min_signed_distance<D>(s, origin, n) / kInclineH, 0.25, 1e-3) << theta_deg;
+  const double mass = total_mass(s);
+  auto centre_of_mass = [&] {
+    Vec<D> x = Vec<D>::Zero();
+    for (std::size_t p = 0; p < s.particles.size(); ++p) {
+      x += s.particles.mass[p] * s.particles.position[p];
+    }
+    return Vec<D>(x / mass);
+  };
+  const Vec<D> x0 = centre_of_mass();
+  InclineResult r;
+  r.min_distance = std::numeric_limits<double>::infinity();
+  double normal_speed = 0.0;
+  run_until(s, scene, scene.end_time, [&](double, double) {
+    normal_speed = std::max(normal_speed, std::abs(s.momentum().template head<D>().dot(n)) / mass);
+    r.min_distance = std::min(r.min_distance, min_signed_distance<D>(s, origin, n) / kInclineH);
+  });
+  const double theta = theta_deg * std::numbers::pi / 180.0, T = scene.end_time;
+  const double accel = kGravity * (std::sin(theta) - mu * std::cos(theta));
+  const double normal_load = mass * kGravity * std::cos(theta);
+  // The impulse the wall gave the material over the whole run (never reset): its mean is the
+  // load, since the block starts and ends at rest across the incline.
+  const Eigen::Vector3d impulse = s.wall_impulses()[0];
+  r.displacement = (centre_of_mass() - x0).dot(downhill) / (0.5 * accel * T * T);
+  r.normal_speed = normal_speed / (kGravity * T);
+  r.normal_force = impulse.template head<D>().dot(n) / T / normal_load;
+  r.friction_force =
+      mu > 0.0 ? -impulse.template head<D>().dot(downhill) / T / (mu * normal_load) : 0.0;
+  r.seconds = seconds_since(start);
+  return r;
+}
+
+/// The checks on one sweep over kInclineAngles; `label` names it in messages.
+void check_incline_sweep(const std::string& label, double mu,
+                         const std::vector<InclineResult>& results) {
+  double lo = std::numeric_limits<double>::infinity(), hi = -lo, sum = 0.0;
+  for (std::size_t i = 0; i < results.size(); ++i) {
+    const InclineResult& r = results[i];
+    const double theta = kInclineAngles[i];
+    std::printf(
+        "%s theta %4.1f mu %.1f: d/d_exact %.5f |v_n|max/(gT) %.2e F_n/(mg cos) %.4f "
+        "F_t/(mu mg cos) %.4f min distance %+.3f h (%.2f s)\n",
+        label.c_str(), theta, mu, r.displacement, r.normal_speed, r.normal_force, r.friction_force,
+        r.min_distance, r.seconds);
+    EXPECT_NEAR(r.displacement, 1.0, 0.03) << label << " theta " << theta;
+    // Supported: with mu = 0 the downhill displacement is that of free fall too, so the block
+    // must also stay on the wall. Falling freely it would reach |v_n| = g T cos(theta), at
+    // least 0.14 g T at these angles.
+    EXPECT_LT(r.normal_speed, 0.01) << label << " theta " << theta;
+    EXPECT_NEAR(r.normal_force, 1.0, 0.03) << label << " theta " << theta;
+    EXPECT_GE(r.min_distance, -kBehindTolerance) << label << " theta " << theta;
+    lo = std::min(lo, r.displacement);
+    hi = std::max(hi, r.displacement);
+    sum += r.displacement;
+  }
+  const double spread = (hi - lo) / (sum / static_cast<double>(results.size()));
+  std::printf("%s mu %.1f: spread (max - min) / mean of d/d_exact = %.3e\n", label.c_str(), mu,
+              spread);
+  ::testing::Test::RecordProperty("spread", std::to_string(spread));
+  EXPECT_LT(spread, 0.01) << label;
+}
+
+class BlendingIncline : public ::testing::TestWithParam<double> {};
+
+void sweep_2d(const std::string& label, double mu, double segment, double cfl) {
+  const auto start = std::chrono::steady_clock::now();
+  std::vector<InclineResult> results;
+  for (double theta : kInclineAngles) {
+    results.push_back(run_incline<2>(incline_2d(theta, mu, segment, cfl), theta, mu));
+  }
+  check_incline_sweep(label, mu, results);
+  std::printf("took %.2f s\n", seconds_since(start));
+}
+
+// 2D wall in segments of h (the boundary grid's resolution, as the 3D remesher makes it), CFL
+// 0.2; see the next two tests for CFL 0.4.
+TEST_P(BlendingIncline, AngleInvariance2D) {
+  sweep_2d("2D segments of h, CFL 0.2", GetParam(), kInclineH, 0.2);
+}
+
+// The polyline as a user writes a straight incline, its two end points (one boundary-grid cell
+// 1.2 m long), at CFL 0.4.
+TEST_P(BlendingIncline, AngleInvariance2DTwoPointWall) {
+  sweep_2d("2D two-point wall, CFL 0.4", GetParam(), 10.0, 0.4);
+}
+
+// Segments of h at CFL 0.4: the block does not stay on the wall. From t ~ 0.12 s it hops
+// (|v_n| up to 0.14 g T, the bottom row lifted from h/4 to 0.6 h above the wall) and the mean
+// normal force is up to 1.87 m g cos(theta) at 82 degrees; with mu = 0.3, d is 2-4% short. It
+// depends on the time step, not the geometry: CFL 0.25 and 0.2 are clean, so are segments of
+// 0.7 h (stable_dt then shrinks with the cell), so is FLIP or PIC at CFL 0.4. This test fails
+// until the boundary grid's step limit accounts for it (see stable_dt).
+TEST_P(BlendingIncline, AngleInvariance2DSegmentsOfHAtCfl04) {
+  sweep_2d("2D segments of h, CFL 0.4", GetParam(), kInclineH, 0.4);
+}
+
+TEST_P(BlendingIncline, AngleInvariance3D) {
+  const auto start = std::chrono::steady_clock::now();
+  const double mu = GetParam();
+  const TempDir dir;
+  std::vector<InclineResult> results;
+  for (double theta : kInclineAngles) {
+    results.push_back(run_incline<3>(incline_3d(theta, mu, dir.path()), theta, mu));
+  }
+  check_incline_sweep("3D", mu, results);
+  std::printf("took %.2f s\n", seconds_since(start));
+}
+
+INSTANTIATE_TEST_SUITE_P(Friction, BlendingIncline, ::testing::Values(0.0, 0.3),
+                         [](const ::testing::TestParamInfo<double>& p) {
+                           return p.param > 0.0 ? "Mu03" : "Mu0";
+                         });
 
 }  // namespace
 }  // namespace mpm
