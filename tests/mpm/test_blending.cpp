@@ -767,12 +767,11 @@ TEST_P(BlendingIncline, AngleInvariance2DTwoPointWall) {
   sweep_2d("2D two-point wall, CFL 0.4", GetParam(), 10.0, 0.4);
 }
 
-// Segments of h at CFL 0.4: the block does not stay on the wall. From t ~ 0.12 s it hops
-// (|v_n| up to 0.14 g T, the bottom row lifted from h/4 to 0.6 h above the wall) and the mean
-// normal force is up to 1.87 m g cos(theta) at 82 degrees; with mu = 0.3, d is 2-4% short. It
-// depends on the time step, not the geometry: CFL 0.25 and 0.2 are clean, so are segments of
-// 0.7 h (stable_dt then shrinks with the cell), so is FLIP or PIC at CFL 0.4. This test fails
-// until the boundary grid's step limit accounts for it (see stable_dt).
+// Segments of h at CFL 0.4. Before stable_dt counted the layer cells at half their size under
+// APIC, the block did not stay on the wall here: from t ~ 0.12 s it hopped (|v_n| up to
+// 0.14 g T, the bottom row lifted from h/4 to 0.6 h above the wall), the mean normal force
+// reached 1.87 m g cos(theta) at 82 degrees and with mu = 0.3 d was 2-4% short, while CFL 0.25
+// and 0.2, segments of 0.7 h, and FLIP or PIC at CFL 0.4 were clean. This case guards that limit.
 TEST_P(BlendingIncline, AngleInvariance2DSegmentsOfHAtCfl04) {
   sweep_2d("2D segments of h, CFL 0.4", GetParam(), kInclineH, 0.4);
 }
