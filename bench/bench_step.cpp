@@ -68,11 +68,13 @@ mpm::Scene floor_scene(int cells, int method) {
   if (method == 0) {
     wall = {{"face", "zmin"}, {"condition", "slip"}, {"separable", true}};
   } else {
-    wall = {{"name", "floor"},
-            {"surface", {{"type", "mesh"}, {"file", floor_mesh(base, -h, 1.0 + h).string()}, {"remesh", true}}},
-            {"method", method == 1 ? "mortar" : "one-way"},
-            {"condition", "slip"},
-            {"separable", true}};
+    wall = {
+        {"name", "floor"},
+        {"surface",
+         {{"type", "mesh"}, {"file", floor_mesh(base, -h, 1.0 + h).string()}, {"remesh", true}}},
+        {"method", method == 1 ? "mortar" : "one-way"},
+        {"condition", "slip"},
+        {"separable", true}};
   }
   const nlohmann::json doc = {
       {"dimension", 3},

@@ -98,8 +98,9 @@ TEST_F(Prep, KeepsAnExistingPackageUnlessTold) {
   EXPECT_EQ(run_mpm(forced).exit_code, 0);
 }
 
-// The tilted plane (2 m x 1 m): the layer over a plane has volume area * t, and every coupling column sums to the integral of its multiplier (partition of
-// unity of the grid basis over Phi and Gamma).
+// The tilted plane (2 m x 1 m): the layer over a plane has volume area * t, and every coupling
+// column sums to the integral of its multiplier (partition of unity of the grid basis over Phi and
+// Gamma).
 TEST_F(Prep, PackageOfAPlaneLoadsBackExact) {
   const fs::path out = dir_ / "plane.h5";
   const RunResult r = run_mpm({"prep", kMeshes + "tilted_plane.obj", "--spacing", "0.1",

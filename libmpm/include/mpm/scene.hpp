@@ -87,12 +87,12 @@ struct Scene {
   UpdateScheme update = UpdateScheme::musl;
   Transfer transfer = Transfer::apic;
   double flip_blend = 1.0;  ///< FLIP fraction of the PIC/FLIP blend
-  double mass_threshold =
-      1e-9;
+  double mass_threshold = 1e-9;
   /// Nodes lighter than this times the mean particle mass take no part in the Phi coupling of
   /// dual-grid walls: a multiplier would push them by gap / R_J, unbounded as the sliver of
   /// mass that reaches them vanishes (DESIGN.md section 4).
-  double coupling_mass_threshold = 1e-2;  ///< nodes lighter than this times the mean particle mass are inactive
+  double coupling_mass_threshold =
+      1e-2;  ///< nodes lighter than this times the mean particle mass are inactive
   Eigen::VectorXd gravity;
   double end_time = 0.0;
   double cfl = 0.5;
