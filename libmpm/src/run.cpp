@@ -61,7 +61,7 @@ class Progress {
       if (force) std::fputc('\n', stderr);
     } else {
       const int decile = static_cast<int>(fraction * 10.0 + 1e-9);
-      if (!force && decile <= last_decile_) return;
+      if (decile <= last_decile_) return;  // also after the end: the 100% line is printed once
       last_decile_ = decile;
       std::fprintf(stderr, "%5.1f%%  t=%.6g  step %ld  elapsed %s  ETA %s\n", 100.0 * fraction, t,
                    step, clock_text(elapsed).c_str(), clock_text(eta).c_str());
