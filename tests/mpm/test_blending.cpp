@@ -26,6 +26,7 @@
 #include <nlohmann/json.hpp>
 
 #include "mpm/solver.hpp"
+#include "support/run_until.hpp"
 
 namespace mpm {
 namespace {
@@ -40,18 +41,7 @@ constexpr double kGravity = 9.81;
 /// round-off.
 constexpr double kBehindTolerance = 0.05;
 
-/// Steps to `end` with the scene's CFL number, calling `observe(t, dt)` after every step.
-void run_until(Simulation& sim, const Scene& scene, double end,
-               const std::function<void(double, double)>& observe) {
-  double t = 0.0;
-  while (t < end - 1e-12 * end) {
-    const double dt = std::min(sim.stable_dt(scene.cfl), end - t);
-    sim.step(dt);
-    t += dt;
-    ASSERT_FALSE(sim.fault().has_value()) << "t = " << t << ": " << *sim.fault();
-    observe(t, dt);
-  }
-}
+using mpm::test::run_until;
 
 template <int D>
 double total_mass(const Solver<D>& s) {

@@ -7,24 +7,13 @@
 #include <numbers>
 
 #include "mpm/solver.hpp"
+#include "support/run_until.hpp"
 #include "support/scenes.hpp"
 
 namespace mpm {
 namespace {
 
-/// Steps the simulation to `end` with the scene's CFL number, calling `observe(t, dt)` after
-/// every step.
-void run_until(Simulation& sim, const Scene& scene, double end,
-               const std::function<void(double, double)>& observe) {
-  double t = 0.0;
-  while (t < end - 1e-12 * end) {
-    const double dt = std::min(sim.stable_dt(scene.cfl), end - t);
-    sim.step(dt);
-    t += dt;
-    ASSERT_FALSE(sim.fault().has_value()) << *sim.fault();
-    observe(t, dt);
-  }
-}
+using mpm::test::run_until;
 
 double total_mass(const Solver<1>& s) {
   double m = 0.0;
