@@ -11,6 +11,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <unordered_map>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -252,6 +253,14 @@ void Solver<D>::layer_couple(bool remapped) {
       // Assemble the active coupling and its Schur complement once per step; the MUSL remap
       // reuses it (the masses do not change).
       w.active_multipliers.clear();
+      w.grid_rows.clear();
+      w.layer_rows.clear();
+      std::unordered_map<int, int> grid_row_of, layer_row_of;  // node -> compact row
+      auto compact = [](std::unordered_map<int, int>& row_of, std::vector<int>& rows, int node) {
+        const auto [it, inserted] = row_of.try_emplace(node, static_cast<int>(rows.size()));
+        if (inserted) rows.push_back(node);
+        return it->second;
+      };
       std::vector<Eigen::Triplet<double>> ga, ba;
       for (int mu = 0; mu < static_cast<int>(w.multiplier_node.size()); ++mu) {
         if (w.mass[w.multiplier_node[mu]] <= coupling_threshold_) continue;
@@ -268,33 +277,36 @@ void Solver<D>::layer_couple(bool remapped) {
         const double gs = w.multiplier_integral[mu] / grid_sum;
         const double bs = w.multiplier_integral[mu] / boundary_sum;
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
-          if (grid.mass[it.row()] > coupling_threshold_)
-            ga.emplace_back(it.row(), col, gs * it.value());
+          const int node = static_cast<int>(it.row());
+          if (grid.mass[node] > coupling_threshold_) {
+            ga.emplace_back(compact(grid_row_of, w.grid_rows, node), col, gs * it.value());
+          }
         }
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
-          if (w.mass[it.row()] > coupling_threshold_)
-            ba.emplace_back(it.row(), col, bs * it.value());
+          const int node = static_cast<int>(it.row());
+          if (w.mass[node] > coupling_threshold_) {
+            ba.emplace_back(compact(layer_row_of, w.layer_rows, node), col, bs * it.value());
+          }
         }
       }
       const auto k = static_cast<Eigen::Index>(w.active_multipliers.size());
       if (k == 0) continue;
-      w.grid_active.resize(static_cast<Eigen::Index>(grid.size()), k);
+      w.grid_active.resize(static_cast<Eigen::Index>(w.grid_rows.size()), k);
       w.grid_active.setFromTriplets(ga.begin(), ga.end());
-      w.boundary_active.resize(static_cast<Eigen::Index>(w.mass.size()), k);
+      w.boundary_active.resize(static_cast<Eigen::Index>(w.layer_rows.size()), k);
       w.boundary_active.setFromTriplets(ba.begin(), ba.end());
-      // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar).
-      Eigen::VectorXd inv_grid_mass(grid.size());
-      for (std::size_t n = 0; n < grid.size(); ++n) {
-        inv_grid_mass[static_cast<Eigen::Index>(n)] =
-            grid.mass[n] > coupling_threshold_ ? 1.0 / grid.mass[n] : 0.0;
+      // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar); every kept row is
+      // above the coupling threshold, so its mass is positive.
+      Eigen::VectorXd inv_grid_mass(w.grid_rows.size());
+      for (std::size_t r = 0; r < w.grid_rows.size(); ++r) {
+        inv_grid_mass[static_cast<Eigen::Index>(r)] = 1.0 / grid.mass[w.grid_rows[r]];
       }
       Eigen::SparseMatrix<double> S =
           w.grid_active.transpose() * inv_grid_mass.asDiagonal() * w.grid_active;
       if (mortar) {
-        Eigen::VectorXd inv_layer_mass(w.mass.size());
-        for (std::size_t n = 0; n < w.mass.size(); ++n) {
-          inv_layer_mass[static_cast<Eigen::Index>(n)] =
-              w.mass[n] > coupling_threshold_ ? 1.0 / w.mass[n] : 0.0;
+        Eigen::VectorXd inv_layer_mass(w.layer_rows.size());
+        for (std::size_t r = 0; r < w.layer_rows.size(); ++r) {
+          inv_layer_mass[static_cast<Eigen::Index>(r)] = 1.0 / w.mass[w.layer_rows[r]];
         }
         S += w.boundary_active.transpose() * inv_layer_mass.asDiagonal() * w.boundary_active;
       }
@@ -322,23 +334,25 @@ void Solver<D>::layer_couple(bool remapped) {
     // Apply to the new velocities (and to the old ones, which FLIP differences against), or to
     // the remapped velocities of MUSL.
     auto solve = [&](std::vector<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
+      const auto ng = static_cast<Eigen::Index>(w.grid_rows.size());
+      const auto nl = static_cast<Eigen::Index>(w.layer_rows.size());
       for (int d = 0; d < D; ++d) {
-        Eigen::VectorXd a(grid.size()), b(w.mass.size());
-        for (std::size_t n = 0; n < grid.size(); ++n) a[static_cast<Eigen::Index>(n)] = va[n][d];
-        for (std::size_t n = 0; n < w.mass.size(); ++n) {
-          b[static_cast<Eigen::Index>(n)] = valpha[n][d];
-        }
+        Eigen::VectorXd a(ng), b(nl);
+        for (Eigen::Index r = 0; r < ng; ++r) a[r] = va[w.grid_rows[r]][d];
+        for (Eigen::Index r = 0; r < nl; ++r) b[r] = valpha[w.layer_rows[r]][d];
         const Eigen::VectorXd gap =
             w.grid_active.transpose() * a - w.boundary_active.transpose() * b;
         const Eigen::VectorXd lambda = w.schur->solve(gap);
         const Eigen::VectorXd da = w.grid_active * lambda;
-        for (Eigen::Index n = 0; n < da.size(); ++n) {
-          if (da[n] != 0.0) va[n][d] -= da[n] / grid.mass[n];
+        for (Eigen::Index r = 0; r < ng; ++r) {
+          const int n = w.grid_rows[r];
+          va[n][d] -= da[r] / grid.mass[n];
         }
         if (mortar) {
           const Eigen::VectorXd db = w.boundary_active * lambda;
-          for (Eigen::Index n = 0; n < db.size(); ++n) {
-            if (db[n] != 0.0) valpha[n][d] += db[n] / w.mass[n];
+          for (Eigen::Index r = 0; r < nl; ++r) {
+            const int n = w.layer_rows[r];
+            valpha[n][d] += db[r] / w.mass[n];
           }
         }
       }

@@ -40,7 +40,10 @@ struct DualWall {
   Eigen::VectorXd multiplier_integral;
   std::vector<int> multiplier_node;
   std::vector<int> active_multipliers;  ///< this step's multipliers that constrain something
-  Eigen::SparseMatrix<double> grid_active, boundary_active;  ///< kept rows, rescaled columns
+  /// Kept rows (compacted: row k is node grid_rows[k] / layer_rows[k]) and rescaled columns, so
+  /// the per-step work scales with the interface, not with the whole grid.
+  Eigen::SparseMatrix<double> grid_active, boundary_active;
+  std::vector<int> grid_rows, layer_rows;
   /// Factorised Schur complement on the active multipliers (held by pointer: Eigen's solvers
   /// cannot be moved).
   std::unique_ptr<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>> schur =
