@@ -203,7 +203,7 @@ template <int D>
 void Solver<D>::step(double dt) {
   particles_to_grid();
   update_grid(dt);
-  apply_walls(dt);
+  apply_walls();
   couple_interfaces();
   grid_to_particles(dt);
 }
@@ -294,7 +294,7 @@ void Solver<D>::update_grid(double dt) {
 }
 
 template <int D>
-void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record, double /*dt*/) {
+void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record) {
   for (std::size_t w = 0; w < scene_.walls.size(); ++w) {
     const BoxWall& wall = scene_.walls[w];
     Vec<D> normal = Vec<D>::Zero();
@@ -332,8 +332,8 @@ void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record, doub
 }
 
 template <int D>
-void Solver<D>::apply_walls(double dt) {
-  constrain_walls(grid.velocity_new, true, dt);
+void Solver<D>::apply_walls() {
+  constrain_walls(grid.velocity_new, true);
   layer_walls(&DualWall<D>::velocity_new, true);
 }
 
@@ -475,7 +475,7 @@ void Solver<D>::grid_to_particles(double dt) {
         const double m = grid.mass[n];
         grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
       }
-      constrain_walls(grid.velocity, false, dt);
+      constrain_walls(grid.velocity, false);
       layer_remap();
       layer_couple(true);
       gather_velocity_gradient<Shape>();

@@ -4,7 +4,7 @@
 //
 //   particles_to_grid();        // mass, momentum, internal and external force
 //   update_grid(dt);            // v_I^{n+1} = (p_I + dt f_I) / m_I
-//   apply_walls(dt);            // wall conditions on the box faces and on the Gamma nodes
+//   apply_walls();              // wall conditions on the box faces and on the Gamma nodes
 //   couple_interfaces();        // dual-grid walls: multipliers on Phi tie the two grids
 //   grid_to_particles(dt);      // v_p, x_p (PIC/FLIP or APIC); MUSL remap; stress update
 //
@@ -79,7 +79,7 @@ class Solver final : public Simulation {
   // The phases of a step, public so tests can check each one.
   void particles_to_grid();
   void update_grid(double dt);
-  void apply_walls(double dt);
+  void apply_walls();
   void couple_interfaces();
   void grid_to_particles(double dt);
 
@@ -103,7 +103,7 @@ class Solver final : public Simulation {
   void gather(double dt);
   template <class Shape>
   void gather_velocity_gradient();
-  void constrain_walls(std::vector<Vec<D>>& velocity, bool record, double dt);
+  void constrain_walls(std::vector<Vec<D>>& velocity, bool record);
   void update_stress(double dt);
   // Dual-grid (boundary-grid) counterparts of the phases, in dual_grid.cpp.
   void setup_dual_walls();
