@@ -35,10 +35,10 @@ int prep_command(const PrepArgs& args) {
       return kExitBadInput;
     }
     // The grid box: given, or the mesh box grown by the layer and two cells, on the h lattice.
+    const mpmgeom::TriangleMesh mesh = mpmgeom::load_mesh(args.mesh, options.import);
     Eigen::VectorXd box_min(3), box_max(3);
     if (args.origin.empty() || args.box_max.empty()) {
-      const Eigen::AlignedBox3d bounds =
-          mpmgeom::bounding_box(mpmgeom::load_mesh(args.mesh, options.import));
+      const Eigen::AlignedBox3d bounds = mpmgeom::bounding_box(mesh);
       const double margin = options.layer.thickness + 2.0 * h;
       for (int d = 0; d < 3; ++d) {
         const double lo = args.origin.empty() ? bounds.min()[d] - margin : args.origin[d];
@@ -61,7 +61,7 @@ int prep_command(const PrepArgs& args) {
       }
     }
     const mpmgeom::GridSpec grid = standard_grid_spec(3, box_min, box_max, h, shape);
-    const BoundaryPackage package = prepare_boundary(args.mesh, options, grid);
+    const BoundaryPackage package = prepare_boundary(mesh, args.mesh, options, grid);
     if (!args.output.parent_path().empty()) fs::create_directories(args.output.parent_path());
     save_boundary_package(package, args.output, xmf);
 

@@ -373,11 +373,17 @@ std::string boundary_digest(const std::filesystem::path& mesh_file, const PrepOp
 
 BoundaryPackage prepare_boundary(const std::filesystem::path& mesh_file, const PrepOptions& options,
                                  const mpmgeom::GridSpec& grid) {
+  return prepare_boundary(mpmgeom::load_mesh(mesh_file, options.import), mesh_file, options, grid);
+}
+
+BoundaryPackage prepare_boundary(const mpmgeom::TriangleMesh& imported,
+                                 const std::filesystem::path& mesh_file, const PrepOptions& options,
+                                 const mpmgeom::GridSpec& grid) {
   std::string why;
   if (!options.layer.valid(&why)) throw std::invalid_argument(why);
   BoundaryPackage package;
-  mpmgeom::TriangleMesh mesh = mpmgeom::load_mesh(mesh_file, options.import);
-  mesh = mpmgeom::validate_and_repair(mesh, mesh_file.string(), options.repair, &package.repairs);
+  mpmgeom::TriangleMesh mesh =
+      mpmgeom::validate_and_repair(imported, mesh_file.string(), options.repair, &package.repairs);
   if (options.remesh) {
     mesh = mpmgeom::remesh_isotropic(mesh, options.remesh_factor * grid.spacing);
   }

@@ -62,6 +62,11 @@ struct PrepOptions {
 /// mpmgeom::MeshError (bad mesh) or std::invalid_argument (bad option) with one-line messages.
 BoundaryPackage prepare_boundary(const std::filesystem::path& mesh_file, const PrepOptions& options,
                                  const mpmgeom::GridSpec& grid);
+/// The same for a mesh already imported from `mesh_file` with options.import (so a caller that
+/// needed the mesh first does not read the file twice).
+BoundaryPackage prepare_boundary(const mpmgeom::TriangleMesh& imported,
+                                 const std::filesystem::path& mesh_file, const PrepOptions& options,
+                                 const mpmgeom::GridSpec& grid);
 
 /// Digest of a file's bytes and the options that shape the package (FNV-1a, 64 bit, hex).
 std::string boundary_digest(const std::filesystem::path& mesh_file, const PrepOptions& options,
