@@ -16,40 +16,10 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include "alpha_stencil.hpp"
 #include "mpm/solver.hpp"
 
 namespace mpm {
-namespace {
-
-/// Boundary-grid basis of one particle: values and physical gradients at its natural
-/// coordinates (the isoparametric map of the cell).
-template <int D>
-struct AlphaStencil {
-  int count = 0;
-  int node[6] = {};
-  double N[6] = {};
-  Vec<D> dN[6];
-};
-
-template <int D>
-AlphaStencil<D> alpha_stencil(const DualWall<D>& w, int cell, const Eigen::Vector3d& xi) {
-  const mpmgeom::AlphaBasis b = mpmgeom::alpha_basis(D, xi);
-  AlphaStencil<D> s;
-  s.count = w.layer->nodes_per_cell();
-  Mat<D> J = Mat<D>::Zero();  // dx/dxi
-  for (int k = 0; k < s.count; ++k) {
-    s.node[k] = w.layer->cells(cell, k);
-    s.N[k] = b.N[k];
-    J += w.position[s.node[k]] * b.dN.row(k).template head<D>();
-  }
-  const Mat<D> inv_jt = J.inverse().transpose();
-  for (int k = 0; k < s.count; ++k) {
-    s.dN[k] = inv_jt * b.dN.row(k).template head<D>().transpose();
-  }
-  return s;
-}
-
-}  // namespace
 
 template <int D>
 std::vector<std::string> Solver<D>::wall_names() const {
@@ -84,6 +54,12 @@ void Solver<D>::setup_dual_walls() {
     w.force.assign(n, Vec<D>::Zero());
     w.velocity.assign(n, Vec<D>::Zero());
     w.velocity_new.assign(n, Vec<D>::Zero());
+    w.enhanced = spec.method == CouplingMethod::enhanced;
+    if (w.enhanced) {
+      w.momentum_new.assign(n, Vec<D>::Zero());
+      w.enh.a_row_of.assign(grid.size(), -1);
+      w.enh.alpha_col_of.assign(n, -1);
+    }
 
     // Gamma nodes and the part each reports to (from the first wall facet that holds it).
     std::vector<int> part(n, 0);
@@ -185,7 +161,9 @@ void Solver<D>::layer_scatter(bool with_force) {
     const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
     const double m = P.mass[p];
     const Vec<D> v = P.velocity[p];
-    const Mat<D> C = apic ? P.affine[p] : Mat<D>::Zero();
+    // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
+    // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md).
+    const Mat<D> C = apic && !w.enhanced ? P.affine[p] : Mat<D>::Zero();
     const Mat<D> vs = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p];
     const Vec<D> mb = m * body_acceleration_[P.body[p]];
     for (int k = 0; k < st.count; ++k) {
@@ -203,6 +181,15 @@ void Solver<D>::layer_scatter(bool with_force) {
 template <int D>
 void Solver<D>::layer_update(double dt) {
   for (auto& w : dual_) {
+    if (w.enhanced) {
+      // The velocities come from the coupled solve (layer_couple); keep p + dt f for it.
+      for (std::size_t n = 0; n < w.mass.size(); ++n) {
+        w.momentum_new[n] = w.momentum[n] + dt * w.force[n];
+      }
+      std::fill(w.velocity.begin(), w.velocity.end(), Vec<D>::Zero());
+      std::fill(w.velocity_new.begin(), w.velocity_new.end(), Vec<D>::Zero());
+      continue;
+    }
     for (std::size_t n = 0; n < w.mass.size(); ++n) {
       const double m = w.mass[n];
       if (m > mass_threshold_) {
@@ -220,6 +207,7 @@ void Solver<D>::layer_update(double dt) {
 template <int D>
 void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool record) {
   for (auto& w : dual_) {
+    if (w.enhanced) continue;  // multiplier constraints in enhanced_solve()
     std::vector<Vec<D>>& v = w.*velocity;
     std::visit(
         [&](const auto& condition) {
@@ -248,6 +236,16 @@ template <int D>
 void Solver<D>::layer_couple(bool remapped) {
   for (auto& w : dual_) {
     if (w.layer_particles == 0) continue;  // nothing in the layer: the grids do not interact
+    if (w.enhanced) {
+      if (remapped) {
+        enhanced_solve(w, grid.velocity, w.momentum, w.velocity, true, false);
+      } else {
+        enhanced_assemble(w);
+        enhanced_solve(w, grid.velocity, w.momentum, w.velocity, false, false);
+        enhanced_solve(w, grid.velocity_new, w.momentum_new, w.velocity_new, true, true);
+      }
+      continue;
+    }
     const bool mortar = w.spec->method == CouplingMethod::mortar;
     if (!remapped) {
       // Assemble the active coupling and its Schur complement once per step; the MUSL remap
@@ -387,6 +385,18 @@ void Solver<D>::layer_gather(double dt) {
       increment += st.N[k] * (w.velocity_new[n] - w.velocity[n]);
       L += w.velocity_new[n] * st.dN[k].transpose();
     }
+    if (w.enhanced) {
+      // The enhancement adds to what gather() took from the standard grid.
+      if (apic) {
+        P.velocity[p] += value;
+        P.affine[p] += L;
+      } else {
+        P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
+      }
+      P.displacement[p] += dt * value;
+      if (usl) P.velocity_gradient[p] += L;
+      continue;
+    }
     if (apic) {
       P.velocity[p] = value;
       if (usl) P.affine[p] = L;  // MUSL: from the remapped field, layer_gather_gradient()
@@ -402,6 +412,7 @@ template <int D>
 void Solver<D>::layer_remap() {
   layer_scatter(false);
   for (auto& w : dual_) {
+    if (w.enhanced) continue;  // solved with the standard grid in layer_couple(true)
     for (std::size_t n = 0; n < w.mass.size(); ++n) {
       w.velocity[n] =
           w.mass[n] > mass_threshold_ ? Vec<D>(w.momentum[n] / w.mass[n]) : Vec<D>::Zero();
@@ -420,6 +431,10 @@ void Solver<D>::layer_gather_gradient() {
     const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
     Mat<D> L = Mat<D>::Zero();
     for (int k = 0; k < st.count; ++k) L += w.velocity[st.node[k]] * st.dN[k].transpose();
+    if (w.enhanced) {
+      P.velocity_gradient[p] += L;  // on top of the standard grid's
+      continue;
+    }
     P.velocity_gradient[p] = L;
     // APIC on the linear boundary basis: C_p = grad v (exact for affine fields, Jiang et al.
     // 2015 section 5.3) taken from the remapped field, a mass-weighted average, rather than from

@@ -338,9 +338,10 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
   const int dim = scene.dimension;
   DualWallSpec wall;
   wall.name = r.string("name", "wall" + std::to_string(index));
-  wall.method = r.choice("method", {"mortar", "one-way"}, "mortar") == "one-way"
-                    ? CouplingMethod::one_way
-                    : CouplingMethod::mortar;
+  const std::string method = r.choice("method", {"mortar", "one-way", "enhanced"}, "mortar");
+  wall.method = method == "one-way"    ? CouplingMethod::one_way
+                : method == "enhanced" ? CouplingMethod::enhanced
+                                       : CouplingMethod::mortar;
   wall.contact = read_contact(r);
   const mpmgeom::GridSpec grid =
       standard_grid_spec(dim, scene.box_min, scene.box_max, scene.spacing, scene.shape);
@@ -499,6 +500,7 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
     scene.mass_threshold = scheme.in_range("mass_threshold", 0.0, 0.5, false, 1e-9);
     scene.coupling_mass_threshold =
         scheme.in_range("coupling_mass_threshold", 0.0, 0.5, false, 1e-2);
+    scene.dependence_tolerance = scheme.in_range("dependence_tolerance", 0.0, 1.0, false, 0.5);
     scheme.finish();
   }
 

@@ -239,7 +239,7 @@ void Solver<D>::scatter(bool with_force) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
   auto scatter_one = [&](std::size_t p) {
-    if (P.layer_wall[p] >= 0) return;  // the boundary grid owns it (layer_scatter)
+    if (owned_by_layer(p)) return;  // the boundary grid owns it (layer_scatter)
     const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
     const double m = P.mass[p];
     const Vec<D> v = P.velocity[p];
@@ -410,7 +410,7 @@ void Solver<D>::gather(double dt) {
     constexpr unsigned Parts = decltype(parts)::value;
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
       for (std::size_t p = r.begin(); p != r.end(); ++p) {
-        if (P.layer_wall[p] >= 0) continue;  // layer_gather
+        if (owned_by_layer(p)) continue;  // layer_gather
         const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
         const GridSample<D> s =
             sample_grid<Parts>(grid, st, grid.velocity_new, grid.velocity, mass_threshold_);
@@ -452,7 +452,7 @@ void Solver<D>::gather_velocity_gradient() {
   auto& P = particles;
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
     for (std::size_t p = r.begin(); p != r.end(); ++p) {
-      if (P.layer_wall[p] >= 0) continue;  // layer_gather_gradient
+      if (owned_by_layer(p)) continue;  // layer_gather_gradient
       const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
       P.velocity_gradient[p] =
           sample_grid<kGradient>(grid, st, grid.velocity, grid.velocity, mass_threshold_).gradient;

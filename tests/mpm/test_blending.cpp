@@ -19,6 +19,7 @@
 #include <limits>
 #include <numbers>
 #include <string>
+#include <tuple>
 #include <utility>
 #include <vector>
 
@@ -527,11 +528,11 @@ json incline_doc(int dim, const Eigen::VectorXd& lo, const Eigen::VectorXd& hi, 
   };
 }
 
-json incline_wall(double mu, json surface) {
+json incline_wall(double mu, json surface, const std::string& method) {
   json wall = contact_json(mu);
   wall["name"] = "incline";
   wall["surface"] = std::move(surface);
-  wall["method"] = "mortar";
+  wall["method"] = method;
   return wall;
 }
 
@@ -544,7 +545,8 @@ struct InclineScene {
 
 /// 2D: a straight polyline running downhill (the material on its left) in segments of about
 /// `segment`; the block (0.3 x 0.15) rotated to lie flat on it, 1e-6 above it.
-InclineScene incline_2d(double theta_deg, double mu, double segment, double cfl) {
+InclineScene incline_2d(double theta_deg, double mu, double segment, double cfl,
+                        const std::string& method) {
   const double theta = theta_deg * std::numbers::pi / 180.0;
   const Eigen::Vector2d origin(0.013, 0.027), s(std::cos(theta), -std::sin(theta)),
       n(std::sin(theta), std::cos(theta));
@@ -566,7 +568,8 @@ InclineScene incline_2d(double theta_deg, double mu, double segment, double cfl)
                   {"points", polyline_json(origin, s, u0, u1, segment)},
                   {"closed", false}};
   InclineScene out;
-  out.doc = incline_doc(2, lo, hi, std::move(body), incline_wall(mu, std::move(surface)), cfl);
+  out.doc = incline_doc(2, lo, hi, std::move(body), incline_wall(mu, std::move(surface), method),
+                        cfl);
   out.origin << origin, 0.0;
   out.downhill << s, 0.0;
   out.normal << n, 0.0;
@@ -598,7 +601,8 @@ class TempDir {
 /// into the material) and remeshed to h by the scene reader. The block (0.3 downhill, 0.2 across,
 /// 0.15 thick) is rotated so that its faces lie along the downhill, across and normal
 /// directions, 1e-6 above the plane.
-InclineScene incline_3d(double theta_deg, double mu, const std::filesystem::path& dir) {
+InclineScene incline_3d(double theta_deg, double mu, const std::filesystem::path& dir,
+                        const std::string& method) {
   const double theta = theta_deg * std::numbers::pi / 180.0;
   const double phi = 30.0 * std::numbers::pi / 180.0;
   const Eigen::Vector3d axis(std::cos(phi), std::sin(phi), 0.0);
@@ -644,7 +648,8 @@ InclineScene incline_3d(double theta_deg, double mu, const std::filesystem::path
       {"particles_per_cell", 2}};
   json surface = {{"type", "mesh"}, {"file", mesh.string()}, {"remesh", true}};
   InclineScene out;
-  out.doc = incline_doc(3, lo, hi, std::move(body), incline_wall(mu, std::move(surface)), 0.4);
+  out.doc =
+      incline_doc(3, lo, hi, std::move(body), incline_wall(mu, std::move(surface), method), 0.4);
   out.origin = origin;
   out.downhill = s;
   out.normal = n;
@@ -733,28 +738,30 @@ void check_incline_sweep(const std::string& label, double mu,
   EXPECT_LT(spread, 0.01) << label;
 }
 
-class BlendingIncline : public ::testing::TestWithParam<double> {};
+/// (method, mu)
+class BlendingIncline : public ::testing::TestWithParam<std::tuple<const char*, double>> {};
 
-void sweep_2d(const std::string& label, double mu, double segment, double cfl) {
+void sweep_2d(const std::string& label, double segment, double cfl) {
   const auto start = std::chrono::steady_clock::now();
+  const auto [method, mu] = BlendingIncline::GetParam();
   std::vector<InclineResult> results;
   for (double theta : kInclineAngles) {
-    results.push_back(run_incline<2>(incline_2d(theta, mu, segment, cfl), theta, mu));
+    results.push_back(run_incline<2>(incline_2d(theta, mu, segment, cfl, method), theta, mu));
   }
-  check_incline_sweep(label, mu, results);
+  check_incline_sweep(std::string(method) + " " + label, mu, results);
   std::printf("took %.2f s\n", seconds_since(start));
 }
 
 // 2D wall in segments of h (the boundary grid's resolution, as the 3D remesher makes it), CFL
 // 0.2; see the next two tests for CFL 0.4.
 TEST_P(BlendingIncline, AngleInvariance2D) {
-  sweep_2d("2D segments of h, CFL 0.2", GetParam(), kInclineH, 0.2);
+  sweep_2d("2D segments of h, CFL 0.2", kInclineH, 0.2);
 }
 
 // The polyline as a user writes a straight incline, its two end points (one boundary-grid cell
 // 1.2 m long), at CFL 0.4.
 TEST_P(BlendingIncline, AngleInvariance2DTwoPointWall) {
-  sweep_2d("2D two-point wall, CFL 0.4", GetParam(), 10.0, 0.4);
+  sweep_2d("2D two-point wall, CFL 0.4", 10.0, 0.4);
 }
 
 // Segments of h at CFL 0.4. Before stable_dt counted the layer cells at half their size under
@@ -763,24 +770,28 @@ TEST_P(BlendingIncline, AngleInvariance2DTwoPointWall) {
 // reached 1.87 m g cos(theta) at 82 degrees and with mu = 0.3 d was 2-4% short, while CFL 0.25
 // and 0.2, segments of 0.7 h, and FLIP or PIC at CFL 0.4 were clean. This case guards that limit.
 TEST_P(BlendingIncline, AngleInvariance2DSegmentsOfHAtCfl04) {
-  sweep_2d("2D segments of h, CFL 0.4", GetParam(), kInclineH, 0.4);
+  sweep_2d("2D segments of h, CFL 0.4", kInclineH, 0.4);
 }
 
 TEST_P(BlendingIncline, AngleInvariance3D) {
   const auto start = std::chrono::steady_clock::now();
-  const double mu = GetParam();
+  const auto [method, mu] = GetParam();
   const TempDir dir;
   std::vector<InclineResult> results;
   for (double theta : kInclineAngles) {
-    results.push_back(run_incline<3>(incline_3d(theta, mu, dir.path()), theta, mu));
+    results.push_back(run_incline<3>(incline_3d(theta, mu, dir.path(), method), theta, mu));
   }
-  check_incline_sweep("3D", mu, results);
+  check_incline_sweep(std::string(method) + " 3D", mu, results);
   std::printf("took %.2f s\n", seconds_since(start));
 }
 
-INSTANTIATE_TEST_SUITE_P(Friction, BlendingIncline, ::testing::Values(0.0, 0.3),
-                         [](const ::testing::TestParamInfo<double>& p) {
-                           return p.param > 0.0 ? "Mu03" : "Mu0";
+// Sweeps in both dual-grid forms: Blending (mortar) and Enhanced, the same tolerances.
+INSTANTIATE_TEST_SUITE_P(MethodAndFriction, BlendingIncline,
+                         ::testing::Combine(::testing::Values("mortar", "enhanced"),
+                                            ::testing::Values(0.0, 0.3)),
+                         [](const auto& p) {
+                           return std::string(std::get<0>(p.param)) +
+                                  (std::get<1>(p.param) > 0.0 ? "Mu03" : "Mu0");
                          });
 
 }  // namespace

@@ -1,7 +1,7 @@
 #pragma once
-// State of one dual-grid wall inside the solver (the Blending method, DESIGN.md section 4): the
-// boundary grid's nodal arrays, its Gamma nodes with their wall frames, and the multipliers that
-// tie it to the standard grid on Phi.
+// State of one dual-grid wall inside the solver (DESIGN.md section 4): the boundary grid's nodal
+// arrays, its Gamma nodes with their wall frames, and the multipliers that tie it to the standard
+// grid, on Phi (Blending) or on Gamma (Enhanced velocity field).
 
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
@@ -16,6 +16,40 @@
 
 namespace mpm {
 
+using SparseLdlt = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
+
+/// Per-step state of the Enhanced velocity field method (enhanced.cpp). Compact indices: the
+/// standard-grid nodes the layer's particles reach ("near" rows), the free boundary-grid nodes
+/// that carry an enhancement ("alpha" columns) and the Gamma multipliers in contact.
+template <int D>
+struct EnhancedState {
+  std::vector<int> a_rows;        ///< compact row -> standard-grid node
+  std::vector<int> a_row_of;      ///< standard-grid node -> compact row, -1 (grid-sized)
+  std::vector<int> alpha_cols;    ///< compact column -> boundary-grid node
+  std::vector<int> alpha_col_of;  ///< boundary-grid node -> compact column, -1
+  Eigen::VectorXd inv_mass;       ///< 1 / m^A of the near rows
+  Eigen::VectorXd alpha_mass;     ///< lumped m^alpha of the columns
+  Eigen::SparseMatrix<double> cross;      ///< m^{A,alpha}: near rows x alpha columns
+  Eigen::SparseMatrix<double> schur;      ///< K = M^alpha - C^T M_A^-1 C (alpha columns)
+  Eigen::SparseMatrix<double> grid_r;     ///< R^A on Gamma: near rows x active multipliers
+  Eigen::SparseMatrix<double> alpha_r;    ///< R^alpha on Gamma: alpha columns x multipliers
+  Eigen::SparseMatrix<double> coupled_r;  ///< W = R^alpha - C^T M_A^-1 R^A
+  Eigen::SparseMatrix<double> grid_rr;    ///< R^A^T M_A^-1 R^A
+  std::vector<int> multipliers;           ///< active multiplier -> wall-coupling column
+  std::vector<Vec<D>> normal;             ///< unit normal into the material, per multiplier
+  std::vector<int> part;                  ///< part index, per multiplier
+  Eigen::VectorXd integral;               ///< sum of the kept R^A entries (= integral S_mu)
+  std::unique_ptr<SparseLdlt> schur_solver = std::make_unique<SparseLdlt>();
+  std::unique_ptr<SparseLdlt> kkt_solver = std::make_unique<SparseLdlt>();
+  std::size_t dropped_dependent = 0;  ///< alpha nodes dropped this step (near-dependent bases)
+  double min_mass_ratio = 1.0;        ///< smallest K_SS / m^alpha_S kept this step
+  int active_set_iterations = 0;      ///< of the last constrained solve
+  /// Contact state and friction impulse per multiplier from the step's solve, reused by the
+  /// MUSL remap.
+  std::vector<unsigned char> state;
+  Eigen::Matrix<double, Eigen::Dynamic, D> load;
+};
+
 template <int D>
 struct DualWall {
   const DualWallSpec* spec = nullptr;
@@ -26,6 +60,7 @@ struct DualWall {
   std::vector<Vec<D>> position;
   std::vector<double> mass;
   std::vector<Vec<D>> momentum, force, velocity, velocity_new;
+  std::vector<Vec<D>> momentum_new;  ///< Enhanced: p + dt f, the right-hand side of v^{n+1}
 
   // Gamma: nodes on the wall, their unit normal into the material, and the part they report to.
   std::vector<int> wall_nodes;
@@ -51,6 +86,8 @@ struct DualWall {
   std::size_t pattern_hash = 0;  ///< sparsity of the last factorised S: reuse its ordering
   double min_cell_size = 0.0;    ///< for the CFL limit
   std::size_t layer_particles = 0;
+  bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
+  EnhancedState<D> enh;
 };
 
 }  // namespace mpm

@@ -64,6 +64,7 @@ struct BoundaryPackage;
 enum class CouplingMethod {
   one_way,  ///< as published: boundary grid first, its velocity prescribed on Phi for the bulk
   mortar,   ///< two-way saddle point on Phi: equal and opposite interface forces
+  enhanced,  ///< Enhanced velocity field: v = v^A + v^alpha, wall multipliers on Gamma
 };
 
 /// A wall represented by a boundary grid (a layer along the surface) coupled to the standard
@@ -93,6 +94,10 @@ struct Scene {
   /// mass that reaches them vanishes (DESIGN.md section 4).
   double coupling_mass_threshold =
       1e-2;  ///< nodes lighter than this times the mean particle mass are inactive
+  /// Enhanced walls: a boundary node whose effective mass after the standard grid is eliminated
+  /// (K_SS = m^alpha_S - sum_I (m^{A,alpha}_IS)^2 / m^A_I) is below this fraction of its own
+  /// mass is nearly a combination of standard-grid functions: its enhancement is dropped.
+  double dependence_tolerance = 0.5;
   Eigen::VectorXd gravity;
   double end_time = 0.0;
   double cfl = 0.5;

@@ -83,7 +83,7 @@ class Solver final : public Simulation {
   void couple_interfaces();
   void grid_to_particles(double dt);
 
-  /// The dual-grid walls (Blending), in scene order.
+  /// The dual-grid walls (Blending and Enhanced), in scene order.
   [[nodiscard]] const std::vector<DualWall<D>>& dual_walls() const { return dual_; }
   /// Which particles each layer holds; run by particles_to_grid(), public for tests.
   void locate_in_layers();
@@ -114,6 +114,15 @@ class Solver final : public Simulation {
   void layer_gather(double dt);
   void layer_gather_gradient();
   void layer_remap();
+  // The Enhanced velocity field walls, in enhanced.cpp.
+  void enhanced_assemble(DualWall<D>& w);
+  void enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
+                      const std::vector<Vec<D>>& alpha_momentum, std::vector<Vec<D>>& valpha,
+                      bool constrained, bool record);
+  /// Does the layer own a particle it holds (Blending), or only enhance it (Enhanced)?
+  [[nodiscard]] bool owned_by_layer(std::size_t p) const {
+    return particles.layer_wall[p] >= 0 && !dual_[particles.layer_wall[p]].enhanced;
+  }
   void advect_and_check();
   void fill_bodies();
   void bin_particles_into_slabs();

@@ -1,0 +1,432 @@
+// The Enhanced velocity field method (DESIGN.md section 4, docs/enhanced.md): inside a wall's
+// layer the velocity is the sum of the standard field and a boundary-grid enhancement,
+//
+//   v(x) = sum_I N^A_I(x) v^A_I + sum_S N^alpha_S(x) v^alpha_S,
+//
+// with v^alpha = 0 on Phi (the interface nodes are not unknowns) and outside the layer. Every
+// particle uses the standard grid; particles in the layer also use the boundary grid. The mass
+// matrix has the cross terms m^{A,alpha}_IS = sum_p m_p N^A_I N^alpha_S; its diagonal blocks are
+// lumped (m^A_I = sum_p m_p N^A_I, m^alpha_S = sum_p m_p N^alpha_S), which keeps it positive
+// definite (each particle's block is, by Cauchy-Schwarz, since sum_S N^alpha_S <= 1) and keeps
+// the uniform mode's row sums, so momentum is exact. The wall acts through multipliers on Gamma,
+//
+//   R^A^T v^A + R^alpha^T v^alpha = 0     (normal component only for slip and friction),
+//
+// with separation and Coulomb friction decided by an active set. The standard grid is diagonal,
+// so it is eliminated: what is left is a symmetric quasi-definite system in the enhancement and
+// the multipliers only,
+//
+//   [ K     -W  ] [v^alpha]   [p^alpha - C^T M_A^-1 p^A]
+//   [ -W^T  -S_A] [j      ] = [R^A^T M_A^-1 p^A        ]
+//
+//   K = M^alpha - C^T M_A^-1 C,  W = R^alpha - C^T M_A^-1 R^A,  S_A = R^A^T M_A^-1 R^A,
+//
+// factorised with Eigen's sparse LDL^T (quasi-definite: stable for any ordering); then
+// v^A = M_A^-1 (p^A - C v^alpha + R^A j). Standard-grid nodes the layer's particles do not reach
+// keep their diagonal update.
+
+#include <algorithm>
+#include <cmath>
+
+#include "alpha_stencil.hpp"
+#include "mpm/solver.hpp"
+
+namespace mpm {
+namespace {
+
+using Triplets = std::vector<Eigen::Triplet<double>>;
+using Sparse = Eigen::SparseMatrix<double>;
+
+/// Contact state of one Gamma multiplier in the active-set loop.
+enum class Contact : unsigned char { off, normal, stick, slip };
+
+}  // namespace
+
+// Per step (the masses and positions are fixed for the step): the near standard-grid rows, the
+// alpha columns that carry an enhancement, the cross mass matrix, the multipliers in contact and
+// the products the solves need.
+template <int D>
+void Solver<D>::enhanced_assemble(DualWall<D>& w) {
+  auto& P = particles;
+  EnhancedState<D>& e = w.enh;
+  for (const int n : e.a_rows) e.a_row_of[n] = -1;
+  for (const int n : e.alpha_cols) e.alpha_col_of[n] = -1;
+  e.a_rows.clear();
+  e.alpha_cols.clear();
+  const int wall_index = static_cast<int>(&w - dual_.data());
+  auto row_of = [&](int node) {
+    int& r = e.a_row_of[node];
+    if (r < 0) {
+      r = static_cast<int>(e.a_rows.size());
+      e.a_rows.push_back(node);
+    }
+    return r;
+  };
+
+  // Candidate alpha columns: free nodes (not on Phi) with mass; candidates are numbered first
+  // and renumbered after the dependence check.
+  std::vector<int> candidates;
+  for (std::size_t n = 0; n < w.mass.size(); ++n) {
+    if (w.layer->node_on_interface[static_cast<Eigen::Index>(n)] != 0) continue;
+    if (w.mass[n] <= coupling_threshold_) continue;
+    e.alpha_col_of[n] = static_cast<int>(candidates.size());
+    candidates.push_back(static_cast<int>(n));
+  }
+
+  // Cross mass m^{A,alpha}_IS = sum_p m_p N^A_I N^alpha_S over the layer's particles, on
+  // standard-grid nodes above the mass threshold.
+  Triplets cross;
+  dispatch_shape(scene_.shape, [&](auto shape) {
+    using Shape = decltype(shape);
+    for (std::size_t p = 0; p < P.size(); ++p) {
+      if (P.layer_wall[p] != wall_index) continue;
+      const AlphaStencil<D> as = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
+      const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+      const double m = P.mass[p];
+      st.for_each(grid, [&](int node, double N, const Vec<D>&, const Vec<D>&) {
+        if (N <= 0.0 || grid.mass[node] <= mass_threshold_) return;
+        int r = -1;
+        for (int k = 0; k < as.count; ++k) {
+          const int c = e.alpha_col_of[as.node[k]];
+          if (c < 0 || as.N[k] <= 0.0) continue;
+          if (r < 0) r = row_of(node);
+          cross.emplace_back(r, c, m * N * as.N[k]);
+        }
+      });
+    }
+  });
+
+  // Near-linear dependence: K_SS = m^alpha_S - sum_I (C_IS)^2 / m^A_I is the effective mass of
+  // the enhancement at S once the standard grid has taken what it can represent. A node whose
+  // K_SS is a small fraction of m^alpha_S adds (almost) nothing the standard grid does not have,
+  // and its tiny effective mass would take large accelerations: drop it (v^alpha_S = 0).
+  std::vector<double> diag(candidates.size());
+  for (std::size_t c = 0; c < candidates.size(); ++c) diag[c] = w.mass[candidates[c]];
+  {
+    // Row sums of C^T M^-1 C's diagonal need C_IS summed over duplicates first.
+    Sparse c_tmp(static_cast<Eigen::Index>(e.a_rows.size()),
+                 static_cast<Eigen::Index>(candidates.size()));
+    c_tmp.setFromTriplets(cross.begin(), cross.end());
+    for (Eigen::Index c = 0; c < c_tmp.outerSize(); ++c) {
+      for (Sparse::InnerIterator it(c_tmp, c); it; ++it) {
+        diag[static_cast<std::size_t>(c)] -=
+            it.value() * it.value() / grid.mass[e.a_rows[static_cast<std::size_t>(it.row())]];
+      }
+    }
+  }
+  std::vector<int> renumber(candidates.size(), -1);
+  e.dropped_dependent = 0;
+  e.min_mass_ratio = 1.0;
+  for (std::size_t c = 0; c < candidates.size(); ++c) {
+    const int n = candidates[c];
+    const double ratio = diag[c] / w.mass[n];
+    e.alpha_col_of[n] = -1;
+    if (ratio < scene_.dependence_tolerance) {
+      ++e.dropped_dependent;
+      continue;
+    }
+    e.min_mass_ratio = std::min(e.min_mass_ratio, ratio);
+    renumber[c] = static_cast<int>(e.alpha_cols.size());
+    e.alpha_col_of[n] = renumber[c];
+    e.alpha_cols.push_back(n);
+  }
+  Triplets kept;
+  kept.reserve(cross.size());
+  for (const auto& t : cross) {
+    const int c = renumber[static_cast<std::size_t>(t.col())];
+    if (c >= 0) kept.emplace_back(t.row(), c, t.value());
+  }
+
+  // Multipliers in contact: those whose Gamma node carries boundary-grid mass (material in the
+  // wall's own cells). Their R^A columns keep the nodes above the coupling threshold, rescaled
+  // to sum to integral S_mu again (so the reported impulse is the material's momentum change).
+  const mpmgeom::Coupling& gamma = w.spec->package->wall_coupling;
+  e.multipliers.clear();
+  e.normal.clear();
+  e.part.clear();
+  std::vector<double> integral;
+  Triplets ga, gb;
+  std::vector<int> node_index(w.mass.size(), -1);
+  for (std::size_t i = 0; i < w.wall_nodes.size(); ++i) node_index[w.wall_nodes[i]] = int(i);
+  for (int mu = 0; mu < static_cast<int>(gamma.multiplier_node.size()); ++mu) {
+    const int g = gamma.multiplier_node[mu];
+    if (w.mass[g] <= coupling_threshold_ || node_index[g] < 0) continue;
+    double sum = 0.0;
+    for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
+      if (grid.mass[it.row()] > coupling_threshold_) sum += it.value();
+    }
+    if (sum <= 1e-12 * gamma.multiplier_integral[mu]) continue;
+    const int col = static_cast<int>(e.multipliers.size());
+    e.multipliers.push_back(mu);
+    e.normal.push_back(w.wall_normal[node_index[g]]);
+    e.part.push_back(w.wall_node_part[node_index[g]]);
+    integral.push_back(gamma.multiplier_integral[mu]);
+    const double scale = gamma.multiplier_integral[mu] / sum;
+    for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
+      const int node = static_cast<int>(it.row());
+      if (grid.mass[node] > coupling_threshold_) ga.emplace_back(row_of(node), col, scale * it.value());
+    }
+    for (Sparse::InnerIterator it(gamma.boundary, mu); it; ++it) {
+      const int c = e.alpha_col_of[it.row()];
+      if (c >= 0) gb.emplace_back(c, col, it.value());
+    }
+  }
+  e.integral = Eigen::Map<const Eigen::VectorXd>(integral.data(),
+                                                 static_cast<Eigen::Index>(integral.size()));
+
+  const auto na = static_cast<Eigen::Index>(e.a_rows.size());
+  const auto ns = static_cast<Eigen::Index>(e.alpha_cols.size());
+  const auto k = static_cast<Eigen::Index>(e.multipliers.size());
+  e.inv_mass.resize(na);
+  for (Eigen::Index r = 0; r < na; ++r) e.inv_mass[r] = 1.0 / grid.mass[e.a_rows[r]];
+  e.alpha_mass.resize(ns);
+  for (Eigen::Index c = 0; c < ns; ++c) e.alpha_mass[c] = w.mass[e.alpha_cols[c]];
+  e.cross.resize(na, ns);
+  e.cross.setFromTriplets(kept.begin(), kept.end());
+  e.grid_r.resize(na, k);
+  e.grid_r.setFromTriplets(ga.begin(), ga.end());
+  e.alpha_r.resize(ns, k);
+  e.alpha_r.setFromTriplets(gb.begin(), gb.end());
+
+  const Sparse minv_c = e.inv_mass.asDiagonal() * e.cross;
+  Sparse mass_alpha(ns, ns);
+  mass_alpha.setIdentity();
+  mass_alpha = e.alpha_mass.asDiagonal() * mass_alpha;
+  e.schur = mass_alpha - Sparse(e.cross.transpose() * minv_c);
+  e.coupled_r = e.alpha_r - Sparse(minv_c.transpose() * e.grid_r);
+  e.grid_rr = e.grid_r.transpose() * e.inv_mass.asDiagonal() * e.grid_r;
+  if (ns > 0) {
+    e.schur_solver->compute(e.schur);
+    if (e.schur_solver->info() != Eigen::Success) {
+      fault_ = "dual wall \"" + w.spec->name +
+               "\": the enhanced mass matrix is singular (raise scheme.dependence_tolerance)";
+    }
+  }
+}
+
+// One velocity solve: from the standard-grid velocities `va` (p^A = m^A va on the near rows,
+// box walls already applied) and the boundary-grid momenta, the coupled velocities, with the
+// wall's multipliers when `constrained`. Impulses go to the wall's parts when `record`.
+template <int D>
+void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
+                               const std::vector<Vec<D>>& alpha_momentum,
+                               std::vector<Vec<D>>& valpha, bool constrained, bool record) {
+  EnhancedState<D>& e = w.enh;
+  using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
+  const auto na = static_cast<Eigen::Index>(e.a_rows.size());
+  const auto ns = static_cast<Eigen::Index>(e.alpha_cols.size());
+  // Unconstrained solves keep every multiplier off.
+  const auto k = static_cast<Eigen::Index>(e.multipliers.size());
+  if (ns > 0 && e.schur_solver->info() != Eigen::Success) return;
+
+  Block pa(na, D), ps(ns, D);
+  for (Eigen::Index r = 0; r < na; ++r) {
+    pa.row(r) = grid.mass[e.a_rows[r]] * va[e.a_rows[r]].transpose();
+  }
+  for (Eigen::Index c = 0; c < ns; ++c) ps.row(c) = alpha_momentum[e.alpha_cols[c]].transpose();
+
+  Block vs = Block::Zero(ns, D), vna(na, D), impulse = Block::Zero(k, D), load = Block::Zero(k, D);
+  std::vector<Contact> state(static_cast<std::size_t>(k), Contact::off);
+  const WallContact& contact = w.spec->contact;
+  const bool sticky = std::holds_alternative<Sticky>(contact.condition);
+  const double mu_f =
+      std::holds_alternative<Friction>(contact.condition) ? std::get<Friction>(contact.condition).mu
+                                                          : 0.0;
+  const Contact on = sticky || mu_f > 0.0 ? Contact::stick : Contact::normal;
+
+  // Solve for the current contact states (and friction loads); returns false if the system
+  // could not be factorised.
+  auto solve = [&]() {
+    const Block pa_l = pa + e.grid_r * load;
+    const Block ps_l = ps + e.alpha_r * load;
+    const Block minv_pa = e.inv_mass.asDiagonal() * pa_l;
+    const Block rhs_alpha = ps_l - e.cross.transpose() * minv_pa;
+    // Constraint rows: one per direction that is held.
+    std::vector<std::pair<int, Vec<D>>> rows;
+    for (Eigen::Index i = 0; i < k; ++i) {
+      const auto s = state[static_cast<std::size_t>(i)];
+      if (s == Contact::stick) {
+        for (int d = 0; d < D; ++d) rows.emplace_back(static_cast<int>(i), Vec<D>::Unit(d));
+      } else if (s == Contact::normal || s == Contact::slip) {
+        rows.emplace_back(static_cast<int>(i), e.normal[static_cast<std::size_t>(i)]);
+      }
+    }
+    impulse.setZero();
+    if (rows.empty()) {
+      if (ns > 0) vs = e.schur_solver->solve(rhs_alpha);
+    } else {
+      const Eigen::Index nv = ns * D, nc = static_cast<Eigen::Index>(rows.size());
+      std::vector<std::vector<int>> rows_of(static_cast<std::size_t>(k));
+      for (std::size_t c = 0; c < rows.size(); ++c) rows_of[rows[c].first].push_back(int(c));
+      Triplets t;
+      for (Eigen::Index c = 0; c < e.schur.outerSize(); ++c) {
+        for (Sparse::InnerIterator it(e.schur, c); it; ++it) {
+          for (int d = 0; d < D; ++d) t.emplace_back(it.row() * D + d, c * D + d, it.value());
+        }
+      }
+      for (Eigen::Index i = 0; i < e.coupled_r.outerSize(); ++i) {
+        for (Sparse::InnerIterator it(e.coupled_r, i); it; ++it) {
+          for (const int c : rows_of[i]) {
+            const Vec<D>& dir = rows[c].second;
+            for (int d = 0; d < D; ++d) {
+              if (dir[d] == 0.0) continue;
+              t.emplace_back(it.row() * D + d, nv + c, -it.value() * dir[d]);
+              t.emplace_back(nv + c, it.row() * D + d, -it.value() * dir[d]);
+            }
+          }
+        }
+      }
+      // S_A plus a relative 1e-10 shift: redundant multipliers (more than the active nodes can
+      // satisfy, the inf-sup problem of DESIGN.md) keep the system quasi-definite.
+      double scale = 0.0;
+      for (Eigen::Index i = 0; i < e.grid_rr.outerSize(); ++i) {
+        for (Sparse::InnerIterator it(e.grid_rr, i); it; ++it) {
+          if (it.row() == i) scale = std::max(scale, it.value());
+          for (const int c : rows_of[i]) {
+            for (const int c2 : rows_of[it.row()]) {
+              const double dd = rows[c].second.dot(rows[c2].second);
+              if (dd != 0.0) t.emplace_back(nv + c2, nv + c, -it.value() * dd);
+            }
+          }
+        }
+      }
+      for (Eigen::Index c = 0; c < nc; ++c) t.emplace_back(nv + c, nv + c, -1e-10 * scale);
+      Sparse kkt(nv + nc, nv + nc);
+      kkt.setFromTriplets(t.begin(), t.end());
+      e.kkt_solver->compute(kkt);
+      if (e.kkt_solver->info() != Eigen::Success) return false;
+      Eigen::VectorXd rhs(nv + nc);
+      for (Eigen::Index c = 0; c < ns; ++c) {
+        for (int d = 0; d < D; ++d) rhs[c * D + d] = rhs_alpha(c, d);
+      }
+      const Block rt_minv_pa = e.grid_r.transpose() * minv_pa;
+      for (Eigen::Index c = 0; c < nc; ++c) {
+        rhs[nv + c] = rows[c].second.dot(rt_minv_pa.row(rows[c].first).transpose());
+      }
+      const Eigen::VectorXd x = e.kkt_solver->solve(rhs);
+      for (Eigen::Index c = 0; c < ns; ++c) {
+        for (int d = 0; d < D; ++d) vs(c, d) = x[c * D + d];
+      }
+      for (Eigen::Index c = 0; c < nc; ++c) {
+        impulse.row(rows[c].first) += x[nv + c] * rows[c].second.transpose();
+      }
+    }
+    vna = e.inv_mass.asDiagonal() *
+          Block(pa_l - e.cross * vs + e.grid_r * impulse);
+    return true;
+  };
+  auto gaps = [&]() -> Block { return e.grid_r.transpose() * vna + e.alpha_r.transpose() * vs; };
+
+  bool ok = true;
+  if (constrained && k > 0 && !record) {
+    // The MUSL remap: the contact states (and friction loads) the step's own solve settled on,
+    // so the strain rate sees the same wall the forces did.
+    if (e.state.size() == static_cast<std::size_t>(k)) {
+      for (Eigen::Index i = 0; i < k; ++i) state[i] = static_cast<Contact>(e.state[i]);
+      load = e.load;
+    }
+    ok = solve();
+  } else if (constrained && k > 0) {
+    if (contact.separable) {
+      // Contact where the unconstrained field moves into the wall.
+      ok = solve();
+      const Block g = gaps();
+      for (Eigen::Index i = 0; i < k; ++i) {
+        if (g.row(i).dot(e.normal[static_cast<std::size_t>(i)].transpose()) < 0.0) {
+          state[static_cast<std::size_t>(i)] = on;
+        }
+      }
+    } else {
+      std::fill(state.begin(), state.end(), on);
+    }
+    // Active set: release multipliers that pull (separable), add those whose gap closes, and
+    // switch between stick and Coulomb slip; a few passes settle it.
+    e.active_set_iterations = 0;
+    for (int iteration = 0; iteration < 30 && ok; ++iteration) {
+      ++e.active_set_iterations;
+      ok = solve();
+      if (!ok) break;
+      const Block g = gaps();
+      bool changed = false;
+      for (Eigen::Index i = 0; i < k; ++i) {
+        auto& s = state[static_cast<std::size_t>(i)];
+        const Vec<D>& n = e.normal[static_cast<std::size_t>(i)];
+        const Vec<D> total = (impulse.row(i) + load.row(i)).transpose();
+        const double jn = total.dot(n);
+        if (s == Contact::off) {
+          if (contact.separable && g.row(i).dot(n.transpose()) < 0.0) {
+            s = on;
+            changed = true;
+          }
+          continue;
+        }
+        if (contact.separable && jn < 0.0) {
+          s = Contact::off;
+          load.row(i).setZero();
+          changed = true;
+          continue;
+        }
+        if (mu_f <= 0.0) continue;
+        const double limit = mu_f * std::abs(jn);
+        if (s == Contact::stick) {
+          const Vec<D> jt = total - jn * n;
+          if (jt.norm() > limit * (1.0 + 1e-9)) {
+            s = Contact::slip;
+            load.row(i) = (limit / jt.norm() * jt).transpose();
+            changed = true;
+          }
+        } else {
+          // Slip: the friction impulse opposes the sliding; if the load reversed the sliding,
+          // the multiplier sticks; otherwise follow the new normal impulse.
+          const Vec<D> dir = load.row(i).transpose().normalized();
+          const Vec<D> slide = g.row(i).transpose() - g.row(i).dot(n.transpose()) * n;
+          if (slide.dot(dir) > 0.0) {
+            s = Contact::stick;
+            load.row(i).setZero();
+            changed = true;
+          } else {
+            const Vec<D> updated = limit * dir;
+            if ((updated - load.row(i).transpose()).norm() > 1e-9 * (limit + 1e-300)) {
+              load.row(i) = updated.transpose();
+              changed = true;
+            }
+          }
+        }
+      }
+      if (!changed) break;
+    }
+  } else {
+    ok = solve();
+  }
+  if (!ok) {
+    fault_ = "dual wall \"" + w.spec->name + "\": the enhanced contact system is singular";
+    return;
+  }
+
+  if (constrained && record) {
+    e.state.assign(static_cast<std::size_t>(k), 0);
+    for (Eigen::Index i = 0; i < k; ++i) e.state[i] = static_cast<unsigned char>(state[i]);
+    e.load = load;
+  }
+  for (Eigen::Index r = 0; r < na; ++r) va[e.a_rows[r]] = vna.row(r).transpose();
+  for (Eigen::Index c = 0; c < ns; ++c) valpha[e.alpha_cols[c]] = vs.row(c).transpose();
+  if (record) {
+    for (Eigen::Index i = 0; i < k; ++i) {
+      const Vec<D> j = (impulse.row(i) + load.row(i)).transpose();
+      wall_impulse_[w.impulse_offset + e.part[static_cast<std::size_t>(i)]] +=
+          pad3<D>(Vec<D>(e.integral[i] * j));
+    }
+  }
+}
+
+#define MPM_ENHANCED_MEMBERS(D)                                                              \
+  template void Solver<D>::enhanced_assemble(DualWall<D>&);                                  \
+  template void Solver<D>::enhanced_solve(DualWall<D>&, std::vector<Vec<D>>&,               \
+                                          const std::vector<Vec<D>>&, std::vector<Vec<D>>&, \
+                                          bool, bool);
+
+MPM_ENHANCED_MEMBERS(1)
+MPM_ENHANCED_MEMBERS(2)
+MPM_ENHANCED_MEMBERS(3)
+
+}  // namespace mpm
