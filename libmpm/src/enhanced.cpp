@@ -114,13 +114,40 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
       }
     }
   }
+  // Coverage: where every standard-grid node that the Gamma multipliers at S reach carries mass,
+  // the standard field alone can take the wall's value there, and an enhancement at S is only a
+  // second, redundant way to do it (a ghost direction the lumped mass gives inertia to; in the
+  // 1D bar it makes the contact chatter). The enhancement is kept where the wall cuts into cells
+  // whose far nodes are empty, which is what it is for.
+  const mpmgeom::Coupling& gamma = w.spec->package->wall_coupling;
+  std::vector<char> covered(candidates.size(), 0);
+  for (std::size_t c = 0; c < candidates.size(); ++c) {
+    if (w.layer->node_on_wall[candidates[c]] != 0) covered[c] = 1;
+  }
+  for (int mu = 0; mu < static_cast<int>(gamma.multiplier_node.size()); ++mu) {
+    double full = 0.0, active = 0.0;
+    for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
+      full += it.value();
+      if (grid.mass[it.row()] > coupling_threshold_) active += it.value();
+    }
+    if (active >= (1.0 - 1e-9) * full) continue;
+    for (Sparse::InnerIterator it(gamma.boundary, mu); it; ++it) {
+      const int c = e.alpha_col_of[it.row()];
+      if (c >= 0) covered[static_cast<std::size_t>(c)] = 0;
+    }
+  }
   std::vector<int> renumber(candidates.size(), -1);
   e.dropped_dependent = 0;
+  e.dropped_covered = 0;
   e.min_mass_ratio = 1.0;
   for (std::size_t c = 0; c < candidates.size(); ++c) {
     const int n = candidates[c];
     const double ratio = diag[c] / w.mass[n];
     e.alpha_col_of[n] = -1;
+    if (covered[c] != 0) {
+      ++e.dropped_covered;
+      continue;
+    }
     if (ratio < scene_.dependence_tolerance) {
       ++e.dropped_dependent;
       continue;
@@ -140,7 +167,6 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   // Multipliers in contact: those whose Gamma node carries boundary-grid mass (material in the
   // wall's own cells). Their R^A columns keep the nodes above the coupling threshold, rescaled
   // to sum to integral S_mu again (so the reported impulse is the material's momentum change).
-  const mpmgeom::Coupling& gamma = w.spec->package->wall_coupling;
   e.multipliers.clear();
   e.normal.clear();
   e.part.clear();

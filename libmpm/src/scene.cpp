@@ -500,7 +500,7 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
     scene.mass_threshold = scheme.in_range("mass_threshold", 0.0, 0.5, false, 1e-9);
     scene.coupling_mass_threshold =
         scheme.in_range("coupling_mass_threshold", 0.0, 0.5, false, 1e-2);
-    scene.dependence_tolerance = scheme.in_range("dependence_tolerance", 0.0, 1.0, false, 0.5);
+    scene.dependence_tolerance = scheme.in_range("dependence_tolerance", 0.0, 1.0, false, 0.01);
     scheme.finish();
   }
 

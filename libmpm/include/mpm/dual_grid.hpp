@@ -42,6 +42,7 @@ struct EnhancedState {
   std::unique_ptr<SparseLdlt> schur_solver = std::make_unique<SparseLdlt>();
   std::unique_ptr<SparseLdlt> kkt_solver = std::make_unique<SparseLdlt>();
   std::size_t dropped_dependent = 0;  ///< alpha nodes dropped this step (near-dependent bases)
+  std::size_t dropped_covered = 0;    ///< Gamma nodes the standard grid alone covers this step
   double min_mass_ratio = 1.0;        ///< smallest K_SS / m^alpha_S kept this step
   int active_set_iterations = 0;      ///< of the last constrained solve
   /// Contact state and friction impulse per multiplier from the step's solve, reused by the

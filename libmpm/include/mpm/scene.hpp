@@ -97,7 +97,7 @@ struct Scene {
   /// Enhanced walls: a boundary node whose effective mass after the standard grid is eliminated
   /// (K_SS = m^alpha_S - sum_I (m^{A,alpha}_IS)^2 / m^A_I) is below this fraction of its own
   /// mass is nearly a combination of standard-grid functions: its enhancement is dropped.
-  double dependence_tolerance = 0.5;
+  double dependence_tolerance = 0.01;
   Eigen::VectorXd gravity;
   double end_time = 0.0;
   double cfl = 0.5;
