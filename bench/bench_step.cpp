@@ -5,8 +5,9 @@
 //   BM_StandardStep3D/N  : an N^3-cell block in free flight, no walls (the bare step)
 //   BM_FloorStep3D/N/m   : an N x N x 10-cell block resting on a floor under gravity, so 10% of
 //                          the particles are within h of it; m = 0: standard wall on the box face
-//                          (grid line), 1: Blending mortar dual-grid floor, 2: one-way. The floor
-//                          of the dual-grid runs is a plane 0.3 h off the grid lines.
+//                          (grid line), 1: Blending mortar dual-grid floor, 2: one-way,
+//                          3: Enhanced velocity field. The floor of the dual-grid runs is a plane
+//                          0.3 h off the grid lines.
 
 #include <benchmark/benchmark.h>
 
@@ -72,7 +73,9 @@ mpm::Scene floor_scene(int cells, int method) {
         {"name", "floor"},
         {"surface",
          {{"type", "mesh"}, {"file", floor_mesh(base, -h, 1.0 + h).string()}, {"remesh", true}}},
-        {"method", method == 1 ? "mortar" : "one-way"},
+        {"method", method == 1   ? "mortar"
+                   : method == 2 ? "one-way"
+                                 : "enhanced"},
         {"condition", "slip"},
         {"separable", true}};
   }
@@ -117,16 +120,23 @@ void BM_FloorStep3D(benchmark::State& state) {
   const double dt = solver.stable_dt(0.3);
   for (int k = 0; k < 5; ++k) solver.step(dt);  // settle onto the floor
   for (auto _ : state) solver.step(dt);
-  std::size_t in_layer = 0;
-  for (const auto& w : solver.dual_walls()) in_layer += w.layer_particles;
+  std::size_t in_layer = 0, factorizations = 0;
+  for (const auto& w : solver.dual_walls()) {
+    in_layer += w.layer_particles;
+    factorizations += w.enh.factorizations;
+  }
   state.SetItemsProcessed(static_cast<int64_t>(state.iterations()) *
                           static_cast<int64_t>(solver.particle_count()));
   state.counters["particles"] = static_cast<double>(solver.particle_count());
+  if (factorizations > 0) {
+    state.counters["factorizations_per_step"] =
+        static_cast<double>(factorizations) / static_cast<double>(state.iterations() + 5);
+  }
   state.counters["in_layer"] =
       static_cast<double>(in_layer) / static_cast<double>(solver.particle_count());
 }
 BENCHMARK(BM_FloorStep3D)
-    ->ArgsProduct({{32}, {0, 1, 2}})
+    ->ArgsProduct({{32}, {0, 1, 2, 3}})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
 

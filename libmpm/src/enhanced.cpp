@@ -122,7 +122,9 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   const mpmgeom::Coupling& gamma = w.spec->package->wall_coupling;
   std::vector<char> covered(candidates.size(), 0);
   for (std::size_t c = 0; c < candidates.size(); ++c) {
-    if (w.layer->node_on_wall[candidates[c]] != 0) covered[c] = 1;
+    if (scene_.drop_covered_enhancement && w.layer->node_on_wall[candidates[c]] != 0) {
+      covered[c] = 1;
+    }
   }
   for (int mu = 0; mu < static_cast<int>(gamma.multiplier_node.size()); ++mu) {
     double full = 0.0, active = 0.0;
@@ -190,7 +192,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     const double scale = gamma.multiplier_integral[mu] / sum;
     for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
       const int node = static_cast<int>(it.row());
-      if (grid.mass[node] > coupling_threshold_) ga.emplace_back(row_of(node), col, scale * it.value());
+      if (grid.mass[node] > coupling_threshold_)
+        ga.emplace_back(row_of(node), col, scale * it.value());
     }
     for (Sparse::InnerIterator it(gamma.boundary, mu); it; ++it) {
       const int c = e.alpha_col_of[it.row()];
@@ -221,6 +224,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   e.schur = mass_alpha - Sparse(e.cross.transpose() * minv_c);
   e.coupled_r = e.alpha_r - Sparse(minv_c.transpose() * e.grid_r);
   e.grid_rr = e.grid_r.transpose() * e.inv_mass.asDiagonal() * e.grid_r;
+  e.kkt_ready = false;  // new masses: the contact system must be factorised again
   if (ns > 0) {
     e.schur_solver->compute(e.schur);
     if (e.schur_solver->info() != Eigen::Success) {
@@ -255,9 +259,9 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
   std::vector<Contact> state(static_cast<std::size_t>(k), Contact::off);
   const WallContact& contact = w.spec->contact;
   const bool sticky = std::holds_alternative<Sticky>(contact.condition);
-  const double mu_f =
-      std::holds_alternative<Friction>(contact.condition) ? std::get<Friction>(contact.condition).mu
-                                                          : 0.0;
+  const double mu_f = std::holds_alternative<Friction>(contact.condition)
+                          ? std::get<Friction>(contact.condition).mu
+                          : 0.0;
   const Contact on = sticky || mu_f > 0.0 ? Contact::stick : Contact::normal;
 
   // Solve for the current contact states (and friction loads); returns false if the system
@@ -282,45 +286,68 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
       if (ns > 0) vs = e.schur_solver->solve(rhs_alpha);
     } else {
       const Eigen::Index nv = ns * D, nc = static_cast<Eigen::Index>(rows.size());
-      std::vector<std::vector<int>> rows_of(static_cast<std::size_t>(k));
-      for (std::size_t c = 0; c < rows.size(); ++c) rows_of[rows[c].first].push_back(int(c));
-      Triplets t;
-      for (Eigen::Index c = 0; c < e.schur.outerSize(); ++c) {
-        for (Sparse::InnerIterator it(e.schur, c); it; ++it) {
-          for (int d = 0; d < D; ++d) t.emplace_back(it.row() * D + d, c * D + d, it.value());
-        }
+      // The matrix depends only on this step's masses and on which directions are held: a
+      // solve with the same rows (the MUSL remap, or an active-set pass that only moved
+      // friction loads) reuses the factorisation.
+      std::vector<int> signature(rows.size());
+      for (std::size_t c = 0; c < rows.size(); ++c) {
+        signature[c] = 4 * rows[c].first + static_cast<int>(state[rows[c].first]);
       }
-      for (Eigen::Index i = 0; i < e.coupled_r.outerSize(); ++i) {
-        for (Sparse::InnerIterator it(e.coupled_r, i); it; ++it) {
-          for (const int c : rows_of[i]) {
-            const Vec<D>& dir = rows[c].second;
-            for (int d = 0; d < D; ++d) {
-              if (dir[d] == 0.0) continue;
-              t.emplace_back(it.row() * D + d, nv + c, -it.value() * dir[d]);
-              t.emplace_back(nv + c, it.row() * D + d, -it.value() * dir[d]);
+      if (!e.kkt_ready || signature != e.kkt_signature) {
+        std::vector<std::vector<int>> rows_of(static_cast<std::size_t>(k));
+        for (std::size_t c = 0; c < rows.size(); ++c) rows_of[rows[c].first].push_back(int(c));
+        Triplets t;
+        for (Eigen::Index c = 0; c < e.schur.outerSize(); ++c) {
+          for (Sparse::InnerIterator it(e.schur, c); it; ++it) {
+            for (int d = 0; d < D; ++d) t.emplace_back(it.row() * D + d, c * D + d, it.value());
+          }
+        }
+        for (Eigen::Index i = 0; i < e.coupled_r.outerSize(); ++i) {
+          for (Sparse::InnerIterator it(e.coupled_r, i); it; ++it) {
+            for (const int c : rows_of[i]) {
+              const Vec<D>& dir = rows[c].second;
+              for (int d = 0; d < D; ++d) {
+                if (dir[d] == 0.0) continue;
+                t.emplace_back(it.row() * D + d, nv + c, -it.value() * dir[d]);
+                t.emplace_back(nv + c, it.row() * D + d, -it.value() * dir[d]);
+              }
             }
           }
         }
-      }
-      // S_A plus a relative 1e-10 shift: redundant multipliers (more than the active nodes can
-      // satisfy, the inf-sup problem of DESIGN.md) keep the system quasi-definite.
-      double scale = 0.0;
-      for (Eigen::Index i = 0; i < e.grid_rr.outerSize(); ++i) {
-        for (Sparse::InnerIterator it(e.grid_rr, i); it; ++it) {
-          if (it.row() == i) scale = std::max(scale, it.value());
-          for (const int c : rows_of[i]) {
-            for (const int c2 : rows_of[it.row()]) {
-              const double dd = rows[c].second.dot(rows[c2].second);
-              if (dd != 0.0) t.emplace_back(nv + c2, nv + c, -it.value() * dd);
+        // S_A plus a relative 1e-10 shift: redundant multipliers (more than the active nodes can
+        // satisfy, the inf-sup problem of DESIGN.md) keep the system quasi-definite.
+        double scale = 0.0;
+        for (Eigen::Index i = 0; i < e.grid_rr.outerSize(); ++i) {
+          for (Sparse::InnerIterator it(e.grid_rr, i); it; ++it) {
+            if (it.row() == i) scale = std::max(scale, it.value());
+            for (const int c : rows_of[i]) {
+              for (const int c2 : rows_of[it.row()]) {
+                const double dd = rows[c].second.dot(rows[c2].second);
+                if (dd != 0.0) t.emplace_back(nv + c2, nv + c, -it.value() * dd);
+              }
             }
           }
         }
+        for (Eigen::Index c = 0; c < nc; ++c) t.emplace_back(nv + c, nv + c, -1e-10 * scale);
+        Sparse kkt(nv + nc, nv + nc);
+        kkt.setFromTriplets(t.begin(), t.end());
+        // The ordering (AMD) depends only on the sparsity: analyse it when that changes.
+        std::size_t hash = static_cast<std::size_t>(kkt.nonZeros()) * 1000003U + kkt.rows();
+        for (Eigen::Index c = 0; c < kkt.outerSize(); ++c) {
+          for (Sparse::InnerIterator it(kkt, c); it; ++it) {
+            hash = hash * 31U + static_cast<std::size_t>(it.row() * 7919 + c);
+          }
+        }
+        if (hash != e.kkt_pattern) {
+          e.kkt_solver->analyzePattern(kkt);
+          e.kkt_pattern = hash;
+        }
+        e.kkt_solver->factorize(kkt);
+        ++e.factorizations;
+        e.kkt_ready = e.kkt_solver->info() == Eigen::Success;
+        e.kkt_signature = std::move(signature);
+        if (!e.kkt_ready) return false;
       }
-      for (Eigen::Index c = 0; c < nc; ++c) t.emplace_back(nv + c, nv + c, -1e-10 * scale);
-      Sparse kkt(nv + nc, nv + nc);
-      kkt.setFromTriplets(t.begin(), t.end());
-      e.kkt_solver->compute(kkt);
-      if (e.kkt_solver->info() != Eigen::Success) return false;
       Eigen::VectorXd rhs(nv + nc);
       for (Eigen::Index c = 0; c < ns; ++c) {
         for (int d = 0; d < D; ++d) rhs[c * D + d] = rhs_alpha(c, d);
@@ -337,8 +364,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
         impulse.row(rows[c].first) += x[nv + c] * rows[c].second.transpose();
       }
     }
-    vna = e.inv_mass.asDiagonal() *
-          Block(pa_l - e.cross * vs + e.grid_r * impulse);
+    vna = e.inv_mass.asDiagonal() * Block(pa_l - e.cross * vs + e.grid_r * impulse);
     return true;
   };
   auto gaps = [&]() -> Block { return e.grid_r.transpose() * vna + e.alpha_r.transpose() * vs; };
@@ -354,11 +380,18 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
     ok = solve();
   } else if (constrained && k > 0) {
     if (contact.separable) {
-      // Contact where the unconstrained field moves into the wall.
+      // Start from the previous step's contact state where the multiplier was in contact then
+      // (contact changes little from step to step, so the loop usually settles in one pass),
+      // elsewhere from where the unconstrained field moves into the wall.
       ok = solve();
       const Block g = gaps();
+      const auto total = e.previous_state.size();
       for (Eigen::Index i = 0; i < k; ++i) {
-        if (g.row(i).dot(e.normal[static_cast<std::size_t>(i)].transpose()) < 0.0) {
+        const auto mu = static_cast<std::size_t>(e.multipliers[static_cast<std::size_t>(i)]);
+        if (mu < total && e.previous_state[mu] != 0xFF) {
+          const auto s = static_cast<Contact>(e.previous_state[mu]);
+          state[static_cast<std::size_t>(i)] = s == Contact::off ? Contact::off : on;
+        } else if (g.row(i).dot(e.normal[static_cast<std::size_t>(i)].transpose()) < 0.0) {
           state[static_cast<std::size_t>(i)] = on;
         }
       }
@@ -430,6 +463,11 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
   }
 
   if (constrained && record) {
+    e.previous_state.assign(w.spec->package->wall_coupling.multiplier_node.size(), 0xFF);
+    for (Eigen::Index i = 0; i < k; ++i) {
+      e.previous_state[static_cast<std::size_t>(e.multipliers[static_cast<std::size_t>(i)])] =
+          static_cast<unsigned char>(state[static_cast<std::size_t>(i)]);
+    }
     e.state.assign(static_cast<std::size_t>(k), 0);
     for (Eigen::Index i = 0; i < k; ++i) e.state[i] = static_cast<unsigned char>(state[i]);
     e.load = load;
@@ -445,11 +483,11 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
   }
 }
 
-#define MPM_ENHANCED_MEMBERS(D)                                                              \
-  template void Solver<D>::enhanced_assemble(DualWall<D>&);                                  \
-  template void Solver<D>::enhanced_solve(DualWall<D>&, std::vector<Vec<D>>&,               \
-                                          const std::vector<Vec<D>>&, std::vector<Vec<D>>&, \
-                                          bool, bool);
+#define MPM_ENHANCED_MEMBERS(D)                                                                   \
+  template void Solver<D>::enhanced_assemble(DualWall<D>&);                                       \
+  template void Solver<D>::enhanced_solve(DualWall<D>&, std::vector<Vec<D>>&,                     \
+                                          const std::vector<Vec<D>>&, std::vector<Vec<D>>&, bool, \
+                                          bool);
 
 MPM_ENHANCED_MEMBERS(1)
 MPM_ENHANCED_MEMBERS(2)

@@ -501,6 +501,7 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
     scene.coupling_mass_threshold =
         scheme.in_range("coupling_mass_threshold", 0.0, 0.5, false, 1e-2);
     scene.dependence_tolerance = scheme.in_range("dependence_tolerance", 0.0, 1.0, false, 0.01);
+    scene.drop_covered_enhancement = scheme.boolean("drop_covered_enhancement", true);
     scheme.finish();
   }
 

@@ -256,10 +256,11 @@ TEST(EnhancedBar1D, WallOnGridLineMatchesStandardMpm) {
   for (std::size_t i = 0; i < standard.time.size(); ++i) {
     worst = std::max(worst, std::abs(standard.stress[i] - enhanced.stress[i]));
   }
-  std::printf("standard: plateau %.6f contact %.6f rebound %.6f; enhanced: %.6f %.6f %.6f; max "
-              "|f_e - f_s| / sigma0 = %.3e\n",
-              standard.plateau, standard.contact_time / kBarDuration, standard.rebound,
-              enhanced.plateau, enhanced.contact_time / kBarDuration, enhanced.rebound, worst);
+  std::printf(
+      "standard: plateau %.6f contact %.6f rebound %.6f; enhanced: %.6f %.6f %.6f; max "
+      "|f_e - f_s| / sigma0 = %.3e\n",
+      standard.plateau, standard.contact_time / kBarDuration, standard.rebound, enhanced.plateau,
+      enhanced.contact_time / kBarDuration, enhanced.rebound, worst);
   RecordProperty("max_force_difference_over_sigma0", std::to_string(worst));
   // Standard MPM's own errors against the exact answer bound the difference.
   EXPECT_LE(std::abs(enhanced.plateau - standard.plateau),
@@ -277,8 +278,7 @@ TEST(EnhancedBar1D, WallOnGridLineMatchesStandardMpm) {
 // the bar gradually over ~2% of 2L/c, and with bspline2 the half-height duration at offset 0.2 h
 // is 0.9897 * 2L/c, one step (0.25% of 2L/c) beyond the bound, while the plateau is within 0.6%.
 /// (method, shape function): Blending (mortar) and Enhanced meet the same bounds.
-class BlendingBarSweep
-    : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {};
+class BlendingBarSweep : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {};
 
 TEST_P(BlendingBarSweep, PlateauContactAndReboundAtTwentyOffsets) {
   const auto start = std::chrono::steady_clock::now();
@@ -288,8 +288,8 @@ TEST_P(BlendingBarSweep, PlateauContactAndReboundAtTwentyOffsets) {
   for (int k = 0; k < 20; ++k) {
     const double offset = k / 20.0;
     const double xw = 0.2 + offset * kBarH;
-    const BarResult r = bar_impact(
-        bar_scene(0.0, 0.2, dual_point_wall(xw, method, kBarH, 1), shape), xw, xw - 0.2);
+    const BarResult r =
+        bar_impact(bar_scene(0.0, 0.2, dual_point_wall(xw, method, kBarH, 1), shape), xw, xw - 0.2);
     std::printf(
         "%s %s offset %.2f h: plateau %.5f contact %.5f (2L/c) rebound %.5f min distance "
         "%+.4f h\n",
@@ -637,8 +637,8 @@ InclineScene incline_2d(double theta_deg, double mu, double segment, double cfl,
                   {"points", polyline_json(origin, s, u0, u1, segment)},
                   {"closed", false}};
   InclineScene out;
-  out.doc = incline_doc(2, lo, hi, std::move(body), incline_wall(mu, std::move(surface), method),
-                        cfl);
+  out.doc =
+      incline_doc(2, lo, hi, std::move(body), incline_wall(mu, std::move(surface), method), cfl);
   out.origin << origin, 0.0;
   out.downhill << s, 0.0;
   out.normal << n, 0.0;

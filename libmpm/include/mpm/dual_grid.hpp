@@ -23,12 +23,12 @@ using SparseLdlt = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 /// that carry an enhancement ("alpha" columns) and the Gamma multipliers in contact.
 template <int D>
 struct EnhancedState {
-  std::vector<int> a_rows;        ///< compact row -> standard-grid node
-  std::vector<int> a_row_of;      ///< standard-grid node -> compact row, -1 (grid-sized)
-  std::vector<int> alpha_cols;    ///< compact column -> boundary-grid node
-  std::vector<int> alpha_col_of;  ///< boundary-grid node -> compact column, -1
-  Eigen::VectorXd inv_mass;       ///< 1 / m^A of the near rows
-  Eigen::VectorXd alpha_mass;     ///< lumped m^alpha of the columns
+  std::vector<int> a_rows;                ///< compact row -> standard-grid node
+  std::vector<int> a_row_of;              ///< standard-grid node -> compact row, -1 (grid-sized)
+  std::vector<int> alpha_cols;            ///< compact column -> boundary-grid node
+  std::vector<int> alpha_col_of;          ///< boundary-grid node -> compact column, -1
+  Eigen::VectorXd inv_mass;               ///< 1 / m^A of the near rows
+  Eigen::VectorXd alpha_mass;             ///< lumped m^alpha of the columns
   Eigen::SparseMatrix<double> cross;      ///< m^{A,alpha}: near rows x alpha columns
   Eigen::SparseMatrix<double> schur;      ///< K = M^alpha - C^T M_A^-1 C (alpha columns)
   Eigen::SparseMatrix<double> grid_r;     ///< R^A on Gamma: near rows x active multipliers
@@ -45,9 +45,16 @@ struct EnhancedState {
   std::size_t dropped_covered = 0;    ///< Gamma nodes the standard grid alone covers this step
   double min_mass_ratio = 1.0;        ///< smallest K_SS / m^alpha_S kept this step
   int active_set_iterations = 0;      ///< of the last constrained solve
+  bool kkt_ready = false;             ///< kkt_solver holds this step's matrix for kkt_signature
+  std::vector<int> kkt_signature;     ///< 4 * multiplier + contact state, per held row
+  std::size_t kkt_pattern = 0;        ///< sparsity hash of the last analysed matrix
+  std::size_t factorizations = 0;     ///< contact-system factorisations so far (for benchmarks)
   /// Contact state and friction impulse per multiplier from the step's solve, reused by the
   /// MUSL remap.
   std::vector<unsigned char> state;
+  /// Final contact state per wall multiplier (all of them, 0xFF: not active) of the last step:
+  /// the next step's active set starts from it.
+  std::vector<unsigned char> previous_state;
   Eigen::Matrix<double, Eigen::Dynamic, D> load;
 };
 

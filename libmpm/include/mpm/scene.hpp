@@ -62,8 +62,8 @@ struct BoundaryPackage;
 
 /// How a dual-grid wall couples its boundary grid to the standard grid (DESIGN.md section 4).
 enum class CouplingMethod {
-  one_way,  ///< as published: boundary grid first, its velocity prescribed on Phi for the bulk
-  mortar,   ///< two-way saddle point on Phi: equal and opposite interface forces
+  one_way,   ///< as published: boundary grid first, its velocity prescribed on Phi for the bulk
+  mortar,    ///< two-way saddle point on Phi: equal and opposite interface forces
   enhanced,  ///< Enhanced velocity field: v = v^A + v^alpha, wall multipliers on Gamma
 };
 
@@ -98,6 +98,9 @@ struct Scene {
   /// (K_SS = m^alpha_S - sum_I (m^{A,alpha}_IS)^2 / m^A_I) is below this fraction of its own
   /// mass is nearly a combination of standard-grid functions: its enhancement is dropped.
   double dependence_tolerance = 0.01;
+  /// Enhanced walls: drop the enhancement at Gamma nodes where every standard node the wall's
+  /// multipliers reach carries mass (the standard field alone can take the wall value there).
+  bool drop_covered_enhancement = true;
   Eigen::VectorXd gravity;
   double end_time = 0.0;
   double cfl = 0.5;
