@@ -3,6 +3,7 @@
 
 #include <filesystem>
 #include <optional>
+#include <string>
 #include <vector>
 
 #include "mpm/boundary_package.hpp"
@@ -22,5 +23,17 @@ struct PrepArgs {
 
 /// `mpm prep`: returns the process exit code (0, 2 bad input, 4 cannot write).
 int prep_command(const PrepArgs& args);
+
+struct VerifyArgs {
+  std::vector<std::string> cases;    ///< empty: all
+  std::vector<std::string> methods;  ///< empty: every method the case lists
+  int resolution = 0;                ///< > 0: only this refinement factor
+  bool convergence = false;          ///< every resolution the case lists
+  std::filesystem::path json_file;
+  std::filesystem::path data_dir;  ///< data/verification
+};
+
+/// `mpm verify`: 0 when every selected check passes, 1 when one fails, 2 bad input.
+int verify_command(const VerifyArgs& args);
 
 }  // namespace mpm::tools

@@ -62,6 +62,24 @@ int main(int argc, char** argv) {
                  "The surface must be closed (a structure or source volume)");
   prep->add_flag("--overwrite", prep_args.overwrite, "Replace an existing package");
 
+  mpm::tools::VerifyArgs verify_args;
+  verify_args.data_dir = MPM_VERIFICATION_DIR;
+  CLI::App* verify = app.add_subcommand(
+      "verify", "Run the verification cases against their exact answers and print the table");
+  verify->add_option("--case", verify_args.cases, "Case name (repeatable; default: all)");
+  verify->add_option("--method", verify_args.methods,
+                     "Wall method: grid, sdf, one-way, mortar, enhanced (repeatable)");
+  verify->add_option("--resolution", verify_args.resolution,
+                     "Refinement factor K (spacing h/K; default: the case's first)")
+      ->check(CLI::Range(1, 64));
+  verify->add_flag("--convergence", verify_args.convergence,
+                   "Every resolution the case lists (for the observed order)");
+  verify->add_option("--json", verify_args.json_file, "Write the table as JSON");
+  verify->add_option("--data", verify_args.data_dir, "Folder of the case files")
+      ->check(CLI::ExistingDirectory);
+  verify->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
+      ->check(CLI::Range(1, 1024));
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -82,6 +100,7 @@ int main(int argc, char** argv) {
     prep_args.options.remesh = !no_remesh;
     return mpm::tools::prep_command(prep_args);
   }
+  if (*verify) return mpm::tools::verify_command(verify_args);
   if (*run) {
     try {
       const mpm::Scene scene = mpm::load_scene(scene_file);

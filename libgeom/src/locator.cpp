@@ -506,7 +506,8 @@ struct ClosedSurface::Impl {
   [[nodiscard]] Crossing classify(int f, const Eigen::Vector3d& p, const Eigen::Vector3d& d) const;
   [[nodiscard]] bool inside(const Eigen::Vector3d& point) const;
   [[nodiscard]] double winding_number(const Eigen::Vector3d& p) const;
-  [[nodiscard]] double distance(const Eigen::Vector3d& point, Eigen::Vector3d* closest) const;
+  [[nodiscard]] double distance(const Eigen::Vector3d& point, Eigen::Vector3d* closest,
+                                int* facet) const;
 
   struct ClosestQuery {
     const Impl* impl;
@@ -514,6 +515,7 @@ struct ClosedSurface::Impl {
     double best_distance = kInf;
     Eigen::Vector3d best_point = Eigen::Vector3d::Zero();
     double float_slack = 0.0;
+    int best_facet = -1;
   };
   static bool on_closest_candidate(RTCPointQueryFunctionArguments* args);
 };
@@ -666,18 +668,21 @@ bool ClosedSurface::Impl::on_closest_candidate(RTCPointQueryFunctionArguments* a
   if (!(distance < q.best_distance)) return false;
   q.best_distance = distance;
   q.best_point = x;
+  q.best_facet = static_cast<int>(f);
   // Shrink the search sphere, kept a little larger so that the float query point and boxes
   // cannot cut off a triangle that is closer in double.
   args->query->radius = float_above(distance + q.float_slack + 2.0 * kFloatEps * distance);
   return true;
 }
 
-double ClosedSurface::Impl::distance(const Eigen::Vector3d& point, Eigen::Vector3d* closest) const {
+double ClosedSurface::Impl::distance(const Eigen::Vector3d& point, Eigen::Vector3d* closest,
+                                     int* facet) const {
+  if (facet != nullptr) *facet = -1;
   if (!point.allFinite()) {
     if (closest != nullptr) closest->setConstant(std::numeric_limits<double>::quiet_NaN());
     return std::numeric_limits<double>::quiet_NaN();
   }
-  ClosestQuery q{this, point - frame_origin, kInf, Eigen::Vector3d::Zero(), 0.0};
+  ClosestQuery q{this, point - frame_origin, kInf, Eigen::Vector3d::Zero(), 0.0, -1};
   q.float_slack = 4.0 * kFloatEps * (q.point.cwiseAbs().maxCoeff() + diagonal);
   RTCPointQuery query;
   query.x = static_cast<float>(q.point[0]);
@@ -689,6 +694,7 @@ double ClosedSurface::Impl::distance(const Eigen::Vector3d& point, Eigen::Vector
   rtcInitPointQueryContext(&context);
   rtcPointQuery(embree.scene(), &query, &context, &Impl::on_closest_candidate, &q);
   if (closest != nullptr) *closest = q.best_point + frame_origin;
+  if (facet != nullptr) *facet = q.best_facet;
   return q.best_distance;
 }
 
@@ -700,12 +706,13 @@ ClosedSurface& ClosedSurface::operator=(ClosedSurface&&) noexcept = default;
 bool ClosedSurface::inside(const Eigen::Vector3d& point) const { return impl_->inside(point); }
 
 double ClosedSurface::signed_distance(const Eigen::Vector3d& point) const {
-  const double d = impl_->distance(point, nullptr);
+  const double d = impl_->distance(point, nullptr, nullptr);
   return impl_->inside(point) ? -d : d;
 }
 
-double ClosedSurface::distance(const Eigen::Vector3d& point, Eigen::Vector3d* closest) const {
-  return impl_->distance(point, closest);
+double ClosedSurface::distance(const Eigen::Vector3d& point, Eigen::Vector3d* closest,
+                               int* facet) const {
+  return impl_->distance(point, closest, facet);
 }
 
 void ClosedSurface::inside(const Eigen::MatrixX3d& points, std::vector<std::uint8_t>& out) const {

@@ -25,12 +25,13 @@ template <int D>
 std::vector<std::string> Solver<D>::wall_names() const {
   std::vector<std::string> names;
   for (const auto& wall : scene_.walls) names.push_back(wall.name);
-  for (const auto& w : dual_) {
-    const auto& parts = w.layer->part_names;
-    if (parts.size() <= 1) {
-      names.push_back(w.spec->name);
+  // The order of setup_dual_walls(): scene order, a dual wall per part when it has several.
+  for (const DualWallSpec& spec : scene_.dual_walls) {
+    const auto& parts = spec.package->layer.part_names;
+    if (spec.method == CouplingMethod::sdf || parts.size() <= 1) {
+      names.push_back(spec.name);
     } else {
-      for (const auto& part : parts) names.push_back(w.spec->name + "_" + part);
+      for (const auto& part : parts) names.push_back(spec.name + "_" + part);
     }
   }
   return names;
@@ -39,7 +40,12 @@ std::vector<std::string> Solver<D>::wall_names() const {
 template <int D>
 void Solver<D>::setup_dual_walls() {
   dual_.clear();
+  sdf_.clear();
   for (const DualWallSpec& spec : scene_.dual_walls) {
+    if (spec.method == CouplingMethod::sdf) {
+      setup_sdf_wall(spec);
+      continue;
+    }
     DualWall<D> w;
     w.spec = &spec;
     w.layer = &spec.package->layer;

@@ -246,6 +246,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
     }
     lo = body.min;
     hi = body.max;
+    body.rotated = shape.choice("lattice", {"grid", "body"}, "grid") == "body";
     if (shape.has("rotation")) {
       if (dim == 1) shape.fail_at(shape.child("rotation"), "a 1D body cannot be rotated");
       Eigen::Vector3d angles = Eigen::Vector3d::Zero();
@@ -338,9 +339,11 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
   const int dim = scene.dimension;
   DualWallSpec wall;
   wall.name = r.string("name", "wall" + std::to_string(index));
-  const std::string method = r.choice("method", {"mortar", "one-way", "enhanced"}, "mortar");
+  const std::string method =
+      r.choice("method", {"mortar", "one-way", "enhanced", "sdf"}, "mortar");
   wall.method = method == "one-way"    ? CouplingMethod::one_way
                 : method == "enhanced" ? CouplingMethod::enhanced
+                : method == "sdf"      ? CouplingMethod::sdf
                                        : CouplingMethod::mortar;
   wall.contact = read_contact(r);
   const mpmgeom::GridSpec grid =

@@ -329,6 +329,7 @@ void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record) {
         wall.contact.condition);
     if (record) wall_impulse_[w] += pad3<D>(impulse);
   }
+  constrain_sdf_walls(velocity, record);
 }
 
 template <int D>

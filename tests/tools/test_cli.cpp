@@ -305,6 +305,25 @@ TEST_F(CommandLine, RejectsUnknownOption) {
   EXPECT_FALSE(fs::exists(out_dir_)) << "a rejected command line must not run the scene";
 }
 
+// `mpm verify`: an unknown case or a malformed case file is bad input (exit 2, one line naming
+// it), not a failed check (exit 1).
+TEST_F(CommandLine, VerifyRejectsUnknownCase) {
+  const RunResult r = run_mpm({"verify", "--case", "no_such_case"});
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_TRUE(contains(r.err, "no_such_case")) << r.err;
+}
+
+TEST_F(CommandLine, VerifyRejectsMalformedCaseFile) {
+  const fs::path dir = out_dir_.parent_path() / "verify_cases";
+  fs::create_directories(dir);
+  write_text(dir / "bar_impact_1d.json", R"({"methods": ["grid"], "params": {"offset": 0.37}})");
+  const RunResult r = run_mpm({"verify", "--case", "bar_impact_1d", "--data", dir.string()});
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_TRUE(contains(r.err, "bar_impact_1d.json")) << r.err;
+  EXPECT_TRUE(contains(r.err, "spacing")) << r.err;
+  fs::remove_all(dir);
+}
+
 TEST_F(CommandLine, RejectsThreadCountOutOfRange) {
   write_scene(scene_2d());
   const RunResult r = run_mpm({"run", scene_file_.string(), "-o", out_dir_.string(), "-j", "0"});

@@ -69,10 +69,10 @@ class ClosedSurface {
   [[nodiscard]] bool inside(const Eigen::Vector3d& point) const;
   /// Negative inside, positive outside, magnitude = distance to the surface.
   [[nodiscard]] double signed_distance(const Eigen::Vector3d& point) const;
-  /// Unsigned distance to the triangles (closed or not) and optionally the closest point
-  /// (Embree point query, exact point-triangle distance in double).
-  [[nodiscard]] double distance(const Eigen::Vector3d& point,
-                                Eigen::Vector3d* closest = nullptr) const;
+  /// Unsigned distance to the triangles (closed or not) and optionally the closest point and
+  /// the triangle it lies on (Embree point query, exact point-triangle distance in double).
+  [[nodiscard]] double distance(const Eigen::Vector3d& point, Eigen::Vector3d* closest = nullptr,
+                                int* facet = nullptr) const;
   void inside(const Eigen::MatrixX3d& points, std::vector<std::uint8_t>& out) const;  ///< TBB
 
   /// The fixed ray directions `inside` tries in turn (unit vectors). Public so that tests can

@@ -41,6 +41,8 @@ struct BodySpec {
   /// 2D, angles about x, y, z in 3D). A rotated box is seeded on a lattice aligned with its own
   /// edges, so its faces are flat (a block resting on an inclined wall).
   Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();
+  /// Seeded on the box's own lattice: rotated, or "lattice": "body" (a box or segment whose
+  /// faces must sit exactly at min/max, e.g. a bar flush against a wall between grid nodes).
   bool rotated = false;
   Eigen::VectorXd center;  ///< sphere/disk centre (dim)
   double radius = 0.0;
@@ -65,6 +67,7 @@ enum class CouplingMethod {
   one_way,   ///< as published: boundary grid first, its velocity prescribed on Phi for the bulk
   mortar,    ///< two-way saddle point on Phi: equal and opposite interface forces
   enhanced,  ///< Enhanced velocity field: v = v^A + v^alpha, wall multipliers on Gamma
+  sdf,       ///< baseline: signed distance on the standard grid, nodes behind the wall constrained
 };
 
 /// A wall represented by a boundary grid (a layer along the surface) coupled to the standard

@@ -124,6 +124,8 @@ class Solver final : public Simulation {
     return particles.layer_wall[p] >= 0 && !dual_[particles.layer_wall[p]].enhanced;
   }
   void advect_and_check();
+  void setup_sdf_wall(const DualWallSpec& spec);
+  void constrain_sdf_walls(std::vector<Vec<D>>& velocity, bool record);
   void fill_bodies();
   void bin_particles_into_slabs();
 
@@ -136,6 +138,15 @@ class Solver final : public Simulation {
   std::vector<std::vector<std::pair<int, int>>> wall_ghosts_;
   std::vector<Eigen::Vector3d> wall_impulse_;  ///< box walls, then dual-wall parts
   std::vector<DualWall<D>> dual_;
+  /// Signed-distance walls (the baseline): standard-grid nodes on or behind the surface, within
+  /// reach of the kernel, with the unit normal into the material at each.
+  struct SdfWall {
+    const DualWallSpec* spec = nullptr;
+    std::vector<int> nodes;
+    std::vector<Vec<D>> normal;
+    int impulse = 0;  ///< index in wall_impulse_
+  };
+  std::vector<SdfWall> sdf_;
   /// Particle indices binned by slab of `slab_width` cells along axis 0. Slabs of one parity
   /// never touch the same nodes, so particle-to-grid runs them in parallel without atomics.
   static constexpr int slab_width = 4;
