@@ -339,8 +339,7 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
   const int dim = scene.dimension;
   DualWallSpec wall;
   wall.name = r.string("name", "wall" + std::to_string(index));
-  const std::string method =
-      r.choice("method", {"mortar", "one-way", "enhanced", "sdf"}, "mortar");
+  const std::string method = r.choice("method", {"mortar", "one-way", "enhanced", "sdf"}, "mortar");
   wall.method = method == "one-way"    ? CouplingMethod::one_way
                 : method == "enhanced" ? CouplingMethod::enhanced
                 : method == "sdf"      ? CouplingMethod::sdf
