@@ -69,8 +69,9 @@ int main(int argc, char** argv) {
   verify->add_option("--case", verify_args.cases, "Case name (repeatable; default: all)");
   verify->add_option("--method", verify_args.methods,
                      "Wall method: grid, sdf, one-way, mortar, enhanced (repeatable)");
-  verify->add_option("--resolution", verify_args.resolution,
-                     "Refinement factor K (spacing h/K; default: the case's first)")
+  verify
+      ->add_option("--resolution", verify_args.resolution,
+                   "Refinement factor K (spacing h/K; default: the case's first)")
       ->check(CLI::Range(1, 64));
   verify->add_flag("--convergence", verify_args.convergence,
                    "Every resolution the case lists (for the observed order)");
