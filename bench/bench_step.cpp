@@ -120,10 +120,11 @@ void BM_FloorStep3D(benchmark::State& state) {
   const double dt = solver.stable_dt(0.3);
   for (int k = 0; k < 5; ++k) solver.step(dt);  // settle onto the floor
   for (auto _ : state) solver.step(dt);
-  std::size_t in_layer = 0, factorizations = 0;
+  std::size_t in_layer = 0, factorizations = 0, refinements = 0;
   for (const auto& w : solver.dual_walls()) {
     in_layer += w.layer_particles;
     factorizations += w.enh.factorizations;
+    refinements += w.enh.refinements;
   }
   state.SetItemsProcessed(static_cast<int64_t>(state.iterations()) *
                           static_cast<int64_t>(solver.particle_count()));
@@ -131,6 +132,8 @@ void BM_FloorStep3D(benchmark::State& state) {
   if (factorizations > 0) {
     state.counters["factorizations_per_step"] =
         static_cast<double>(factorizations) / static_cast<double>(state.iterations() + 5);
+    state.counters["refinements_per_step"] =
+        static_cast<double>(refinements) / static_cast<double>(state.iterations() + 5);
   }
   state.counters["in_layer"] =
       static_cast<double>(in_layer) / static_cast<double>(solver.particle_count());

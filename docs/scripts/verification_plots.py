@@ -69,8 +69,8 @@ def summary(path):
         print(f"| {case} | " + " | ".join(row) + " |")
 
 
-def main(path):
-    checks = json.load(open(path))
+def main(paths):
+    checks = [c for path in paths for c in json.load(open(path))]
     series = defaultdict(list)  # (case, measure, method) -> [(K, value)]
     for c in checks:
         if c["note"]:
@@ -114,5 +114,4 @@ if __name__ == "__main__":
     if len(sys.argv) > 2 and sys.argv[1] == "summary":
         summary(sys.argv[2])
     else:
-        main(sys.argv[1] if len(sys.argv) > 1 else os.path.join(ROOT, "docs",
-                                                                "verification_convergence.json"))
+        main(sys.argv[1:] or [os.path.join(ROOT, "docs", "verification_convergence.json")])

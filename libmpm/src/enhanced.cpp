@@ -40,6 +40,60 @@ using Sparse = Eigen::SparseMatrix<double>;
 /// Contact state of one Gamma multiplier in the active-set loop.
 enum class Contact : unsigned char { off, normal, stick, slip };
 
+/// Sparsity hash of a matrix (the ordering and the symbolic factorisation depend only on it).
+std::size_t pattern_hash(const Sparse& m) {
+  std::size_t hash = static_cast<std::size_t>(m.nonZeros()) * 1000003U + m.rows();
+  for (Eigen::Index c = 0; c < m.outerSize(); ++c) {
+    for (Sparse::InnerIterator it(m, c); it; ++it) {
+      hash = hash * 31U + static_cast<std::size_t>(it.row() * 7919 + c);
+    }
+  }
+  return hash;
+}
+
+/// Solves m x = b with `solver`, which holds a factorisation of m itself or, when `refine`, of
+/// an earlier matrix with the same pattern (the previous step's: the masses change a little
+/// from step to step). Refinement passes x += F^-1 (b - m x) run until the update is below
+/// 1e-13 of x; if they stall (the matrices are too far apart), m is factorised and `refine`
+/// cleared. Returns false if m cannot be factorised.
+/// `passes` and `factorizations` count the work done (reported by the benchmarks).
+template <class Rhs>
+bool refined_solve(SparseLdlt& solver, const Sparse& m, bool& refine, const Rhs& b, Rhs& x,
+                   std::size_t& passes, std::size_t& factorizations) {
+  x = solver.solve(b);
+  if (!refine) return true;
+  for (int pass = 0; pass < 20; ++pass) {
+    const Rhs dx = solver.solve(Rhs(b - m * x));
+    x += dx;
+    ++passes;
+    if (dx.norm() <= 1e-13 * x.norm()) return true;
+  }
+  solver.factorize(m);
+  ++factorizations;
+  refine = false;
+  if (solver.info() != Eigen::Success) return false;
+  x = solver.solve(b);
+  return true;
+}
+
+/// Factorises m into `solver` unless `solver` holds a factorisation of an earlier matrix with the
+/// same pattern (then refined_solve() refines against it): sets `refine` accordingly. Returns
+/// false if m cannot be factorised.
+bool factorise_or_reuse(SparseLdlt& solver, const Sparse& m, std::size_t& pattern, bool& factored,
+                        bool reusable, bool& refine, std::size_t& factorizations) {
+  const std::size_t hash = pattern_hash(m);
+  refine = factored && reusable && hash == pattern;
+  if (refine) return true;
+  if (hash != pattern) {
+    solver.analyzePattern(m);
+    pattern = hash;
+  }
+  solver.factorize(m);
+  ++factorizations;
+  factored = solver.info() == Eigen::Success;
+  return factored;
+}
+
 }  // namespace
 
 // Per step (the masses and positions are fixed for the step): the near standard-grid rows, the
@@ -224,13 +278,11 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   e.schur = mass_alpha - Sparse(e.cross.transpose() * minv_c);
   e.coupled_r = e.alpha_r - Sparse(minv_c.transpose() * e.grid_r);
   e.grid_rr = e.grid_r.transpose() * e.inv_mass.asDiagonal() * e.grid_r;
-  e.kkt_ready = false;  // new masses: the contact system must be factorised again
-  if (ns > 0) {
-    e.schur_solver->compute(e.schur);
-    if (e.schur_solver->info() != Eigen::Success) {
-      fault_ = "dual wall \"" + w.spec->name +
-               "\": the enhanced mass matrix is singular (raise scheme.dependence_tolerance)";
-    }
+  e.kkt_ready = false;  // new masses: the contact system is solved anew
+  if (ns > 0 && !factorise_or_reuse(*e.schur_solver, e.schur, e.schur_pattern, e.schur_factored,
+                                    true, e.schur_refine, e.factorizations)) {
+    fault_ = "dual wall \"" + w.spec->name +
+             "\": the enhanced mass matrix is singular (raise scheme.dependence_tolerance)";
   }
 }
 
@@ -247,7 +299,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
   const auto ns = static_cast<Eigen::Index>(e.alpha_cols.size());
   // Unconstrained solves keep every multiplier off.
   const auto k = static_cast<Eigen::Index>(e.multipliers.size());
-  if (ns > 0 && e.schur_solver->info() != Eigen::Success) return;
+  if (ns > 0 && !e.schur_factored) return;
 
   Block pa(na, D), ps(ns, D);
   for (Eigen::Index r = 0; r < na; ++r) {
@@ -283,7 +335,10 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
     }
     impulse.setZero();
     if (rows.empty()) {
-      if (ns > 0) vs = e.schur_solver->solve(rhs_alpha);
+      if (ns > 0 && !refined_solve(*e.schur_solver, e.schur, e.schur_refine, rhs_alpha, vs,
+                                   e.refinements, e.factorizations)) {
+        return false;
+      }
     } else {
       const Eigen::Index nv = ns * D, nc = static_cast<Eigen::Index>(rows.size());
       // The matrix depends only on this step's masses and on which directions are held: a
@@ -331,22 +386,17 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
         for (Eigen::Index c = 0; c < nc; ++c) t.emplace_back(nv + c, nv + c, -1e-10 * scale);
         Sparse kkt(nv + nc, nv + nc);
         kkt.setFromTriplets(t.begin(), t.end());
-        // The ordering (AMD) depends only on the sparsity: analyse it when that changes.
-        std::size_t hash = static_cast<std::size_t>(kkt.nonZeros()) * 1000003U + kkt.rows();
-        for (Eigen::Index c = 0; c < kkt.outerSize(); ++c) {
-          for (Sparse::InnerIterator it(kkt, c); it; ++it) {
-            hash = hash * 31U + static_cast<std::size_t>(it.row() * 7919 + c);
-          }
+        // The same rows on the same pattern as the factorisation in hand (contact that has not
+        // changed since an earlier step): the masses moved a little, so that factorisation is a
+        // close preconditioner and a few refinement passes solve the new matrix to round-off;
+        // only a pattern or row change, or a refinement that stalls, refactorises.
+        if (!factorise_or_reuse(*e.kkt_solver, kkt, e.kkt_pattern, e.kkt_factored,
+                                signature == e.kkt_signature, e.kkt_refine, e.factorizations)) {
+          return false;
         }
-        if (hash != e.kkt_pattern) {
-          e.kkt_solver->analyzePattern(kkt);
-          e.kkt_pattern = hash;
-        }
-        e.kkt_solver->factorize(kkt);
-        ++e.factorizations;
-        e.kkt_ready = e.kkt_solver->info() == Eigen::Success;
+        e.kkt_matrix = std::move(kkt);
+        e.kkt_ready = true;
         e.kkt_signature = std::move(signature);
-        if (!e.kkt_ready) return false;
       }
       Eigen::VectorXd rhs(nv + nc);
       for (Eigen::Index c = 0; c < ns; ++c) {
@@ -356,7 +406,11 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
       for (Eigen::Index c = 0; c < nc; ++c) {
         rhs[nv + c] = rows[c].second.dot(rt_minv_pa.row(rows[c].first).transpose());
       }
-      const Eigen::VectorXd x = e.kkt_solver->solve(rhs);
+      Eigen::VectorXd x;
+      if (!refined_solve(*e.kkt_solver, e.kkt_matrix, e.kkt_refine, rhs, x, e.refinements,
+                         e.factorizations)) {
+        return false;
+      }
       for (Eigen::Index c = 0; c < ns; ++c) {
         for (int d = 0; d < D; ++d) vs(c, d) = x[c * D + d];
       }

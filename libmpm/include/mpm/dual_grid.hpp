@@ -49,6 +49,13 @@ struct EnhancedState {
   std::vector<int> kkt_signature;     ///< 4 * multiplier + contact state, per held row
   std::size_t kkt_pattern = 0;        ///< sparsity hash of the last analysed matrix
   std::size_t factorizations = 0;     ///< contact-system factorisations so far (for benchmarks)
+  std::size_t refinements = 0;        ///< refinement passes against an earlier factorisation
+  bool kkt_factored = false;          ///< kkt_solver holds a valid factorisation (maybe older)
+  bool kkt_refine = false;            ///< this step's matrix is solved by refinement
+  std::size_t schur_pattern = 0;      ///< sparsity hash of the factorised K
+  bool schur_factored = false;        ///< schur_solver holds a valid factorisation (maybe older)
+  bool schur_refine = false;          ///< this step's K is solved by refinement
+  Eigen::SparseMatrix<double> kkt_matrix;  ///< this step's contact matrix (full storage)
   /// Contact state and friction impulse per multiplier from the step's solve, reused by the
   /// MUSL remap.
   std::vector<unsigned char> state;
