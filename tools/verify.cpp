@@ -503,13 +503,18 @@ std::vector<Check> self_weight_column(const json& p, const std::string& method, 
   if (method == "grid") {
     doc["walls"].push_back({{"face", "ymin"}, {"condition", "slip"}});
   } else {
-    // A polyline keeps the material on its left: running in +x puts it above.
-    doc["walls"].push_back(
-        {{"name", "floor"},
-         {"method", method},
-         {"condition", "slip"},
-         {"surface",
-          {{"type", "polyline"}, {"points", json::array({vec({-h, y0}), vec({W + h, y0})})}}}});
+    // A polyline keeps the material on its left: running in +x puts it above. Segments of h:
+    // the boundary grid has a cell per segment, and a floor of one long segment would carry the
+    // block on its two end nodes only (the block sagged between them).
+    json points = json::array();
+    const int segments = static_cast<int>(std::lround((W + 2 * h) / h));
+    for (int i = 0; i <= segments; ++i) {
+      points.push_back(vec({-h + i * (W + 2 * h) / segments, y0}));
+    }
+    doc["walls"].push_back({{"name", "floor"},
+                            {"method", method},
+                            {"condition", "slip"},
+                            {"surface", {{"type", "polyline"}, {"points", points}}}});
   }
   const double end = param(p, "time");
   std::vector<double> mean_stress, mean_y;
