@@ -18,6 +18,7 @@
 
 #include "alpha_stencil.hpp"
 #include "mpm/solver.hpp"
+#include "sparse_pattern.hpp"
 
 namespace mpm {
 
@@ -74,8 +75,10 @@ void Solver<D>::setup_dual_walls() {
         part[w.layer->wall_facets(f, k)] = w.layer->wall_facet_part[f];
       }
     }
+    w.wall_index_of_node.assign(n, -1);
     for (std::size_t i = 0; i < n; ++i) {
       if (w.layer->node_on_wall[static_cast<Eigen::Index>(i)] == 0) continue;
+      w.wall_index_of_node[i] = static_cast<int>(w.wall_nodes.size());
       w.wall_nodes.push_back(static_cast<int>(i));
       w.wall_normal.push_back(
           w.layer->node_normals.row(static_cast<Eigen::Index>(i)).transpose().normalized());
@@ -321,12 +324,7 @@ void Solver<D>::layer_couple(bool remapped) {
       for (Eigen::Index i = 0; i < k; ++i) S.coeffRef(i, i) += shift;
       // The ordering (AMD) depends only on the sparsity, which changes only when nodes or
       // multipliers switch on or off: analyse it then, factorise every step.
-      std::size_t hash = static_cast<std::size_t>(S.nonZeros()) * 1000003U + S.rows();
-      for (Eigen::Index c = 0; c < S.outerSize(); ++c) {
-        for (Eigen::SparseMatrix<double>::InnerIterator it(S, c); it; ++it) {
-          hash = hash * 31U + static_cast<std::size_t>(it.row() * 7919 + c);
-        }
-      }
+      const std::size_t hash = pattern_hash(S);
       if (hash != w.pattern_hash) {
         w.schur->analyzePattern(S);
         w.pattern_hash = hash;

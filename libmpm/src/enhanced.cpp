@@ -30,6 +30,7 @@
 
 #include "alpha_stencil.hpp"
 #include "mpm/solver.hpp"
+#include "sparse_pattern.hpp"
 
 namespace mpm {
 namespace {
@@ -39,17 +40,6 @@ using Sparse = Eigen::SparseMatrix<double>;
 
 /// Contact state of one Gamma multiplier in the active-set loop.
 enum class Contact : unsigned char { off, normal, stick, slip };
-
-/// Sparsity hash of a matrix (the ordering and the symbolic factorisation depend only on it).
-std::size_t pattern_hash(const Sparse& m) {
-  std::size_t hash = static_cast<std::size_t>(m.nonZeros()) * 1000003U + m.rows();
-  for (Eigen::Index c = 0; c < m.outerSize(); ++c) {
-    for (Sparse::InnerIterator it(m, c); it; ++it) {
-      hash = hash * 31U + static_cast<std::size_t>(it.row() * 7919 + c);
-    }
-  }
-  return hash;
-}
 
 /// Solves m x = b with `solver`, which holds a factorisation of m itself or, when `refine`, of
 /// an earlier matrix with the same pattern (the previous step's: the masses change a little
@@ -156,16 +146,15 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   // and its tiny effective mass would take large accelerations: drop it (v^alpha_S = 0).
   std::vector<double> diag(candidates.size());
   for (std::size_t c = 0; c < candidates.size(); ++c) diag[c] = w.mass[candidates[c]];
-  {
-    // Row sums of C^T M^-1 C's diagonal need C_IS summed over duplicates first.
-    Sparse c_tmp(static_cast<Eigen::Index>(e.a_rows.size()),
-                 static_cast<Eigen::Index>(candidates.size()));
-    c_tmp.setFromTriplets(cross.begin(), cross.end());
-    for (Eigen::Index c = 0; c < c_tmp.outerSize(); ++c) {
-      for (Sparse::InnerIterator it(c_tmp, c); it; ++it) {
-        diag[static_cast<std::size_t>(c)] -=
-            it.value() * it.value() / grid.mass[e.a_rows[static_cast<std::size_t>(it.row())]];
-      }
+  // The cross mass over every candidate column (duplicates summed), from which K_SS is read and
+  // the kept columns are taken.
+  Sparse cross_candidates(static_cast<Eigen::Index>(e.a_rows.size()),
+                          static_cast<Eigen::Index>(candidates.size()));
+  cross_candidates.setFromTriplets(cross.begin(), cross.end());
+  for (Eigen::Index c = 0; c < cross_candidates.outerSize(); ++c) {
+    for (Sparse::InnerIterator it(cross_candidates, c); it; ++it) {
+      diag[static_cast<std::size_t>(c)] -=
+          it.value() * it.value() / grid.mass[e.a_rows[static_cast<std::size_t>(it.row())]];
     }
   }
   // Coverage: where every standard-grid node that the Gamma multipliers at S reach carries mass,
@@ -181,12 +170,11 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     }
   }
   for (int mu = 0; mu < static_cast<int>(gamma.multiplier_node.size()); ++mu) {
-    double full = 0.0, active = 0.0;
+    double active = 0.0;  // the whole column sums to integral S_mu (partition of unity)
     for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
-      full += it.value();
       if (grid.mass[it.row()] > coupling_threshold_) active += it.value();
     }
-    if (active >= (1.0 - 1e-9) * full) continue;
+    if (active >= (1.0 - 1e-9) * gamma.multiplier_integral[mu]) continue;
     for (Sparse::InnerIterator it(gamma.boundary, mu); it; ++it) {
       const int c = e.alpha_col_of[it.row()];
       if (c >= 0) covered[static_cast<std::size_t>(c)] = 0;
@@ -213,12 +201,14 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     e.alpha_col_of[n] = renumber[c];
     e.alpha_cols.push_back(n);
   }
-  Triplets kept;
-  kept.reserve(cross.size());
-  for (const auto& t : cross) {
-    const int c = renumber[static_cast<std::size_t>(t.col())];
-    if (c >= 0) kept.emplace_back(t.row(), c, t.value());
+  // Column selection candidates -> kept columns.
+  Triplets select;
+  for (std::size_t c = 0; c < candidates.size(); ++c) {
+    if (renumber[c] >= 0) select.emplace_back(static_cast<int>(c), renumber[c], 1.0);
   }
+  Sparse selection(static_cast<Eigen::Index>(candidates.size()),
+                   static_cast<Eigen::Index>(e.alpha_cols.size()));
+  selection.setFromTriplets(select.begin(), select.end());
 
   // Multipliers in contact: those whose Gamma node carries boundary-grid mass (material in the
   // wall's own cells). Their R^A columns keep the nodes above the coupling threshold, rescaled
@@ -228,11 +218,9 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   e.part.clear();
   std::vector<double> integral;
   Triplets ga, gb;
-  std::vector<int> node_index(w.mass.size(), -1);
-  for (std::size_t i = 0; i < w.wall_nodes.size(); ++i) node_index[w.wall_nodes[i]] = int(i);
   for (int mu = 0; mu < static_cast<int>(gamma.multiplier_node.size()); ++mu) {
     const int g = gamma.multiplier_node[mu];
-    if (w.mass[g] <= coupling_threshold_ || node_index[g] < 0) continue;
+    if (w.mass[g] <= coupling_threshold_ || w.wall_index_of_node[g] < 0) continue;
     double sum = 0.0;
     for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
       if (grid.mass[it.row()] > coupling_threshold_) sum += it.value();
@@ -240,8 +228,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     if (sum <= 1e-12 * gamma.multiplier_integral[mu]) continue;
     const int col = static_cast<int>(e.multipliers.size());
     e.multipliers.push_back(mu);
-    e.normal.push_back(w.wall_normal[node_index[g]]);
-    e.part.push_back(w.wall_node_part[node_index[g]]);
+    e.normal.push_back(w.wall_normal[w.wall_index_of_node[g]]);
+    e.part.push_back(w.wall_node_part[w.wall_index_of_node[g]]);
     integral.push_back(gamma.multiplier_integral[mu]);
     const double scale = gamma.multiplier_integral[mu] / sum;
     for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
@@ -264,8 +252,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   for (Eigen::Index r = 0; r < na; ++r) e.inv_mass[r] = 1.0 / grid.mass[e.a_rows[r]];
   e.alpha_mass.resize(ns);
   for (Eigen::Index c = 0; c < ns; ++c) e.alpha_mass[c] = w.mass[e.alpha_cols[c]];
-  e.cross.resize(na, ns);
-  e.cross.setFromTriplets(kept.begin(), kept.end());
+  e.cross = cross_candidates * selection;
+  e.cross.conservativeResize(na, ns);  // rows the multipliers added carry no cross mass
   e.grid_r.resize(na, k);
   e.grid_r.setFromTriplets(ga.begin(), ga.end());
   e.alpha_r.resize(ns, k);

@@ -246,7 +246,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
     }
     lo = body.min;
     hi = body.max;
-    body.rotated = shape.choice("lattice", {"grid", "body"}, "grid") == "body";
+    body.own_lattice = shape.choice("lattice", {"grid", "body"}, "grid") == "body";
     if (shape.has("rotation")) {
       if (dim == 1) shape.fail_at(shape.child("rotation"), "a 1D body cannot be rotated");
       Eigen::Vector3d angles = Eigen::Vector3d::Zero();
@@ -260,7 +260,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
                        Eigen::AngleAxisd(angles[1], Eigen::Vector3d::UnitY()) *
                        Eigen::AngleAxisd(angles[0], Eigen::Vector3d::UnitX()))
                           .toRotationMatrix();
-      body.rotated = true;
+      body.own_lattice = true;
       // The rotated corners bound the body.
       const Eigen::VectorXd centre = 0.5 * (body.min + body.max);
       const Eigen::VectorXd half = 0.5 * (body.max - body.min);

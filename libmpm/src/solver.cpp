@@ -103,7 +103,7 @@ void Solver<D>::fill_bodies() {
   for (std::size_t b = 0; b < scene_.bodies.size(); ++b) {
     const BodySpec& body = scene_.bodies[b];
     const int n = body.particles_per_cell;
-    if (body.rotated) {
+    if (body.own_lattice) {
       // A lattice aligned with the box's own edges, about h/n apart, filling it exactly.
       const Vec<D> extent = to_vec<D>(body.max) - to_vec<D>(body.min);
       const Vec<D> centre = 0.5 * (to_vec<D>(body.max) + to_vec<D>(body.min));

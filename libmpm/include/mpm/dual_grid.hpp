@@ -79,6 +79,7 @@ struct DualWall {
 
   // Gamma: nodes on the wall, their unit normal into the material, and the part they report to.
   std::vector<int> wall_nodes;
+  std::vector<int> wall_index_of_node;  ///< boundary node -> index in wall_nodes, -1 off Gamma
   std::vector<Vec<D>> wall_normal;
   std::vector<int> wall_node_part;
   int impulse_offset = 0;  ///< index of this wall's first part in the solver's wall impulses

@@ -43,7 +43,7 @@ struct BodySpec {
   Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();
   /// Seeded on the box's own lattice: rotated, or "lattice": "body" (a box or segment whose
   /// faces must sit exactly at min/max, e.g. a bar flush against a wall between grid nodes).
-  bool rotated = false;
+  bool own_lattice = false;
   Eigen::VectorXd center;  ///< sphere/disk centre (dim)
   double radius = 0.0;
   int particles_per_cell = 2;  ///< per direction
