@@ -19,6 +19,7 @@
 // vertex's column before it gets closer to another part of the wall than to its own facets.
 
 #include "mpmgeom/boundary_grid.hpp"
+#include "format.hpp"
 
 #include <algorithm>
 #include <array>
@@ -74,11 +75,7 @@ constexpr double kCreaseRatio = 0.9;
 /// Phi then rises from a shrunk crease at no more than 45 degrees.
 constexpr double kMaxThicknessSlope = 1.0;
 
-std::string format_number(double x) {
-  std::ostringstream out;
-  out << x;
-  return out.str();
-}
+using detail::format_number;
 
 template <int Dim>
 std::string format_point(const Eigen::Matrix<double, Dim, 1>& p) {
@@ -420,7 +417,7 @@ std::vector<double> medial_limits(const Wall<Dim>& wall, double thickness,
       if (!(gap(0.0) > 1e-12 * thickness)) return;
       // Cheap rejection: the distance to the facet is at least that to its plane (3D) or line.
       if constexpr (Dim == 3) {
-        const Point<3> normal = (w[1] - w[0]).cross(w[2] - w[0]).normalized();
+        const Point<3>& normal = wall.facet_normals[static_cast<std::size_t>(f)];
         const double a = (x - w[0]).dot(normal), b = n.dot(normal);
         auto plane_gap = [&](double s) { return std::abs(a + b * s) - own * s; };
         double lowest = std::min(plane_gap(0.0), plane_gap(height));

@@ -273,22 +273,17 @@ std::vector<std::size_t> pinched_vertices(const std::vector<Triangle>& triangles
     const auto& around = faces_at[v];
     // Fans by union-find over the local face list; faces sharing another corner u share the
     // edge v-u.
-    std::vector<std::size_t> parent(around.size());
-    std::iota(parent.begin(), parent.end(), std::size_t{0});
-    auto find = [&](std::size_t i) {
-      while (parent[i] != i) i = parent[i] = parent[parent[i]];
-      return i;
-    };
+    UnionFind fans_of(around.size());
     std::map<std::size_t, std::size_t> first_face_with;  // other corner -> local face index
     for (std::size_t i = 0; i < around.size(); ++i) {
       for (std::size_t u : triangles[around[i]]) {
         if (u == v) continue;
         const auto [it, inserted] = first_face_with.try_emplace(u, i);
-        if (!inserted) parent[find(i)] = find(it->second);
+        if (!inserted) fans_of.join(i, it->second);
       }
     }
     std::size_t fans = 0;
-    for (std::size_t i = 0; i < around.size(); ++i) fans += find(i) == i;
+    for (std::size_t i = 0; i < around.size(); ++i) fans += fans_of.find(i) == i;
     if (fans > 1) pinched.push_back(v);
   }
   return pinched;
