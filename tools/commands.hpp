@@ -30,7 +30,8 @@ struct VerifyArgs {
   int resolution = 0;                ///< > 0: only this refinement factor
   bool convergence = false;          ///< every resolution the case lists
   std::filesystem::path json_file;
-  std::filesystem::path data_dir;  ///< data/verification
+  std::filesystem::path data_dir;   ///< data/verification
+  std::filesystem::path scene_dir;  ///< non-empty: write every scene run there as JSON
 };
 
 /// `mpm verify`: 0 when every selected check passes, 1 when one fails, 2 bad input.

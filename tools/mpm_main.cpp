@@ -76,6 +76,8 @@ int main(int argc, char** argv) {
   verify->add_flag("--convergence", verify_args.convergence,
                    "Every resolution the case lists (for the observed order)");
   verify->add_option("--json", verify_args.json_file, "Write the table as JSON");
+  verify->add_option("--scenes", verify_args.scene_dir,
+                     "Write every scene run to DIR as JSON (rerun one with mpm run)");
   verify->add_option("--data", verify_args.data_dir, "Folder of the case files")
       ->check(CLI::ExistingDirectory);
   verify->add_option("-j,--threads", threads, "Worker threads (default: all cores)")

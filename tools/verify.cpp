@@ -62,10 +62,23 @@ struct Run {
 };
 
 /// Runs `doc` to its end time; `observe(sim, t, dt)` after every step.
+// --scenes DIR: where each scene goes, and the name of the case/method/resolution running.
+std::filesystem::path g_scene_dir;
+std::string g_scene_prefix;
+int g_scene_count = 0;
+
 Run run_scene_doc(const json& doc, const std::string& label,
                   const std::function<void(Simulation&, double, double)>& observe) {
   Run r;
   const auto start = std::chrono::steady_clock::now();
+  if (!g_scene_dir.empty()) {
+    // --scenes: every scene as a file `mpm run` takes, to rerun one configuration alone.
+    const auto file =
+        g_scene_dir / (g_scene_prefix + "_" + std::to_string(g_scene_count++) + ".json");
+    std::ofstream out(file);
+    out << doc.dump(1) << "\n";
+    if (!out) throw std::runtime_error("cannot write " + file.string());
+  }
   r.scene = parse_scene(doc, "<verify " + label + ">");
   r.sim = make_simulation(r.scene);
   double t = 0.0;
@@ -662,9 +675,10 @@ std::vector<Check> particle_vs_wall(const json& p, const std::string& method, in
                    {"rotation", method == "grid" ? 0.0 : -theta}}},
                  {"particles_per_cell", 1},
                  {"velocity", vec({v.x(), v.y()})}};
-    json doc = incline_doc_2d(f, 0.0, method, h, 0.0, 1.5, body, 0.0, 0.1,
+    json doc = incline_doc_2d(f, 0.0, method, h, 0.0, 1.5, body, 0.0, param(p, "time"),
                               {{"update", "musl"}, {"transfer", "apic"}});
     doc["gravity"] = vec({0.0, 0.0});
+    doc["materials"][0]["youngs_modulus"] = param(p, "youngs_modulus");
     Run r = run_scene_doc(doc, "particle_vs_wall_2d", nullptr);
     const Eigen::Vector3d m = r.sim->momentum();
     const double mass = total_mass(*r.sim);
@@ -698,6 +712,15 @@ const std::map<std::string, Checker>& checkers() {
 
 int verify_command(const VerifyArgs& args) {
   std::vector<Check> checks;
+  g_scene_dir = args.scene_dir;
+  if (!g_scene_dir.empty()) {
+    std::error_code ec;
+    std::filesystem::create_directories(g_scene_dir, ec);
+    if (ec || !std::filesystem::is_directory(g_scene_dir)) {
+      std::cerr << "mpm verify: --scenes " << g_scene_dir.string() << ": not a writable folder\n";
+      return 2;
+    }
+  }
   std::vector<std::string> cases = args.cases;
   if (cases.empty()) {
     for (const auto& [name, fn] : checkers()) cases.push_back(name);
@@ -743,6 +766,8 @@ int verify_command(const VerifyArgs& args) {
     for (const std::string& method : methods) {
       for (const int k : resolutions) {
         std::vector<Check> got;
+        g_scene_prefix = name + "_" + method + "_k" + std::to_string(k);
+        g_scene_count = 0;
         try {
           got = checkers().at(name)(p.at("params"), method, k);
         } catch (const std::exception& e) {

@@ -61,6 +61,7 @@ void Solver<D>::setup_dual_walls() {
     w.force.assign(n, Vec<D>::Zero());
     w.velocity.assign(n, Vec<D>::Zero());
     w.velocity_new.assign(n, Vec<D>::Zero());
+    w.touch_gap.assign(n, std::numeric_limits<double>::infinity());
     w.enhanced = spec.method == CouplingMethod::enhanced;
     if (w.enhanced) {
       w.momentum_new.assign(n, Vec<D>::Zero());
@@ -159,6 +160,7 @@ void Solver<D>::layer_scatter(bool with_force) {
     if (with_force) {
       std::fill(w.mass.begin(), w.mass.end(), 0.0);
       std::fill(w.force.begin(), w.force.end(), Vec<D>::Zero());
+      for (const int n : w.wall_nodes) w.touch_gap[n] = std::numeric_limits<double>::infinity();
     }
     std::fill(w.momentum.begin(), w.momentum.end(), Vec<D>::Zero());
   }
@@ -172,9 +174,17 @@ void Solver<D>::layer_scatter(bool with_force) {
     const Vec<D> v = P.velocity[p];
     // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
     // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md).
-    const Mat<D> C = apic && !w.enhanced ? P.affine[p] : Mat<D>::Zero();
+    // The MUSL remap (with_force false) leaves C_p out as well: C_p^{n+1} is the gradient of
+    // the remapped field, and remapping with the old C_p would hand each particle its own
+    // C_p back, so a particle alone in a boundary cell would keep straining at a fixed rate
+    // that its stress never corrects (docs/verification.md, particle against a wall).
+    const Mat<D> C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
     const Mat<D> vs = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p];
     const Vec<D> mb = m * body_acceleration_[P.body[p]];
+    // The particle's half-size (current volume as a cube), widened by the touch tolerance.
+    const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
+    const double reach =
+        (1.0 + w.spec->contact.touch_tolerance) * 0.5 * std::pow(std::abs(volume), 1.0 / D);
     for (int k = 0; k < st.count; ++k) {
       const int node = st.node[k];
       const double N = st.N[k];
@@ -182,6 +192,11 @@ void Solver<D>::layer_scatter(bool with_force) {
       if (with_force) {
         w.mass[node] += N * m;
         w.force[node] += vs * st.dN[k] + N * mb;
+        const int i = w.wall_index_of_node[node];
+        if (i >= 0) {
+          const double gap = (P.position[p] - w.position[node]).dot(w.wall_normal[i]) - reach;
+          w.touch_gap[node] = std::min(w.touch_gap[node], gap);
+        }
       }
     }
   }
@@ -224,6 +239,8 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
             const int n = w.wall_nodes[i];
             const double m = w.mass[n];
             if (m <= mass_threshold_) continue;
+            // Separable: no contact until the material touches the wall at this node.
+            if (w.spec->contact.separable && w.touch_gap[n] > 0.0) continue;
             const Vec<D> before = v[n];
             v[n] = constrain_velocity<D>(condition, w.spec->contact.separable, w.wall_normal[i],
                                          before);
@@ -392,8 +409,9 @@ void Solver<D>::layer_gather(double dt) {
     if (w.enhanced) {
       // The enhancement adds to what gather() took from the standard grid.
       if (apic) {
+        // C_p stays the standard grid's: the enhancement is the wall's sharp layer, which the
+        // standard grid's affine transfer cannot carry (its scatter leaves C_p out too).
         P.velocity[p] += value;
-        P.affine[p] += L;
       } else {
         P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
       }
@@ -442,8 +460,10 @@ void Solver<D>::layer_gather_gradient() {
     P.velocity_gradient[p] = L;
     // APIC on the linear boundary basis: C_p = grad v (exact for affine fields, Jiang et al.
     // 2015 section 5.3) taken from the remapped field, a mass-weighted average, rather than from
-    // v^{n+1}, which sees nearly empty layer nodes at full weight; the remap of an affine field
-    // is affine, so exactness is kept. (On the standard grid's linear/GIMP kernels the same
+    // v^{n+1}, which sees nearly empty layer nodes at full weight. The remap leaves the old C_p
+    // out (layer_scatter), so an affine field is reproduced up to the offset of each node's
+    // particle centroid, and a lone particle's C_p decays instead of persisting. (On the
+    // standard grid's linear/GIMP kernels the same
     // choice made the bar impact unstable, so they keep C_p from v^{n+1}.)
     if (apic) P.affine[p] = L;
   }

@@ -221,6 +221,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   for (int mu = 0; mu < static_cast<int>(gamma.multiplier_node.size()); ++mu) {
     const int g = gamma.multiplier_node[mu];
     if (w.mass[g] <= coupling_threshold_ || w.wall_index_of_node[g] < 0) continue;
+    // Separable: no multiplier until the material touches the wall at its node.
+    if (w.spec->contact.separable && w.touch_gap[g] > 0.0) continue;
     double sum = 0.0;
     for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
       if (grid.mass[it.row()] > coupling_threshold_) sum += it.value();

@@ -291,10 +291,22 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
   return body;
 }
 
-WallContact read_contact(Reader& r) {
+/// touch: whether the wall decides contact by touch (dual-grid Blending and Enhanced walls);
+/// box and sdf walls act on every node near them, as standard MPM does.
+WallContact read_contact(Reader& r, bool touch) {
   WallContact contact;
   const std::string condition = r.choice("condition", {"sticky", "slip", "friction"});
   contact.separable = r.boolean("separable", false);
+  if (r.has("touch_tolerance")) {
+    if (!touch) {
+      r.fail_at(r.child("touch_tolerance"),
+                "only used by dual-grid walls (method mortar, one-way or enhanced)");
+    }
+    contact.touch_tolerance = r.in_range("touch_tolerance", 0.0, 1e6, false);
+    if (!contact.separable) {
+      r.fail_at(r.child("touch_tolerance"), "only used with \"separable\": true");
+    }
+  }
   if (condition == "friction") {
     contact.condition = Friction{r.number("mu")};
     if (std::get<Friction>(contact.condition).mu < 0.0) {
@@ -322,7 +334,7 @@ BoxWall read_wall(Reader& r, int dim) {
       wall.side = f % 2 == 0 ? -1 : 1;
     }
   }
-  wall.contact = read_contact(r);
+  wall.contact = read_contact(r, false);
   return wall;
 }
 
@@ -344,7 +356,7 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
                 : method == "enhanced" ? CouplingMethod::enhanced
                 : method == "sdf"      ? CouplingMethod::sdf
                                        : CouplingMethod::mortar;
-  wall.contact = read_contact(r);
+  wall.contact = read_contact(r, wall.method != CouplingMethod::sdf);
   const mpmgeom::GridSpec grid =
       standard_grid_spec(dim, scene.box_min, scene.box_max, scene.spacing, scene.shape);
 

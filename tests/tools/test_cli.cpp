@@ -240,6 +240,14 @@ TEST_F(CommandLine, RejectsFrictionCoefficientOnSlipWall) {
   expect_rejected("/walls/1/mu", {"friction"});
 }
 
+TEST_F(CommandLine, RejectsTouchToleranceOnBoxWall) {
+  // Box walls act on every node near them (standard MPM); accepting the key would mislead.
+  json scene = scene_2d();
+  scene["walls"][1]["touch_tolerance"] = 0.5;
+  write_scene(scene);
+  expect_rejected("/walls/1/touch_tolerance", {"dual-grid"});
+}
+
 TEST_F(CommandLine, RejectsFixedTimeStepAboveCflLimit) {
   // Wave speed of the rubber in 2D is about 37 m/s, so h/c is about 2.7e-3 s; 0.01 s is ~4x over.
   json scene = scene_2d();
