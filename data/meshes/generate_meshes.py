@@ -5,6 +5,7 @@ hillside.obj            synthetic terrain from a height function: a 60 m x 24 m 
                         steepens, then flattens into a run-out, with a shallow channel along x
 barrier_wall.stl        closed box wall (binary STL) across the run-out, standing on the terrain
 source_volume.ply       closed debris source volume (ASCII PLY) resting on the upper slope
+hillside_barrier.obj    the hillside and the barrier as one surface (parts terrain, barrier)
 chute_half_cylinder.obj open half-cylinder chute, radius 0.5 m, 4 m long, inclined 30 degrees
 tilted_plane.obj        2 m x 1 m plane inclined 25 degrees about y
 Units are metres; normals (counter-clockwise) point to the material side: up for terrain and
@@ -123,6 +124,71 @@ def main():
     t = math.radians(25.0)
     v, f = grid_surface(10, 5, lambda u, w: (2.0 * u * math.cos(t), 1.0 * w, -2.0 * u * math.sin(t) + 1.0))
     write_obj("tilted_plane.obj", v, f, "plane")
+
+    hillside_with_barrier()
+
+
+def oriented(v, tri, outward):
+    """tri wound so that its normal points along `outward` (a 3-vector)."""
+    n = normal(v, tri)
+    return tri if sum(n[k] * outward[k] for k in range(3)) > 0.0 else (tri[0], tri[2], tri[1])
+
+
+def hillside_with_barrier():
+    """hillside_barrier.obj: the hillside and the barrier as one open surface (parts `terrain`
+    and `barrier`): the terrain with the barrier's footprint cut out, and the barrier's upslope,
+    downslope and end faces and top standing on it. One surface, so that material at the foot of
+    the wall meets both in the same boundary layer (two separate walls overlap there)."""
+    x0, x1, y0, y1 = 50.0, 50.6, 4.0, 20.0
+    base = min(terrain_height(50.0, y) for y in [4.0 + 0.5 * k for k in range(33)]) - 0.5
+    top = base + 4.0
+    xs = sorted({round(60.0 * i / 160, 6) for i in range(161)
+                 if not (x0 - 0.1 < 60.0 * i / 160 < x1 + 0.1)} | {x0, x1})
+    ys = [round(24.0 * j / 60, 6) for j in range(61)]
+    assert y0 in ys and y1 in ys
+    nx, ny = len(xs), len(ys)
+    v = [(x, y, terrain_height(x, y)) for y in ys for x in xs]
+    ground = lambda i, j: j * nx + i
+    inside = lambda x, y: x0 <= x <= x1 and y0 <= y <= y1
+    top_index = {}
+    for j, y in enumerate(ys):
+        for i, x in enumerate(xs):
+            if inside(x, y):
+                top_index[(i, j)] = len(v)
+                v.append((x, y, top))
+    terrain, barrier = [], []
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            cx, cy = 0.5 * (xs[i] + xs[i + 1]), 0.5 * (ys[j] + ys[j + 1])
+            if inside(cx, cy):
+                a, b = top_index[(i, j)], top_index[(i + 1, j)]
+                c, d = top_index[(i, j + 1)], top_index[(i + 1, j + 1)]
+                barrier += [(a, b, d), (a, d, c)]
+            else:
+                a, b = ground(i, j), ground(i + 1, j)
+                c, d = ground(i, j + 1), ground(i + 1, j + 1)
+                terrain += [(a, b, d), (a, d, c)]
+    # Vertical faces along the footprint's border, wound outwards.
+    def wall(p, q, outward):
+        gp, gq, tp, tq = ground(*p), ground(*q), top_index[p], top_index[q]
+        barrier.append(oriented(v, (gp, gq, tq), outward))
+        barrier.append(oriented(v, (gp, tq, tp), outward))
+    i0, i1 = xs.index(x0), xs.index(x1)
+    j0, j1 = ys.index(y0), ys.index(y1)
+    for j in range(j0, j1):
+        wall((i0, j), (i0, j + 1), (-1.0, 0.0, 0.0))
+        wall((i1, j), (i1, j + 1), (1.0, 0.0, 0.0))
+    for i in range(i0, i1):
+        wall((i, j0), (i + 1, j0), (0.0, -1.0, 0.0))
+        wall((i, j1), (i + 1, j1), (0.0, 1.0, 0.0))
+    with open("hillside_barrier.obj", "w") as f:
+        f.write("# hillside and barrier as one surface, generate_meshes.py\n")
+        for p in v:
+            f.write("v %.6f %.6f %.6f\n" % p)
+        for name, faces in (("terrain", terrain), ("barrier", barrier)):
+            f.write(f"o {name}\n")
+            for a, b, c in faces:
+                f.write(f"f {a + 1} {b + 1} {c + 1}\n")
 
 
 if __name__ == "__main__":

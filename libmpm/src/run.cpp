@@ -4,6 +4,7 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -13,6 +14,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "mpm/boundary_package.hpp"
 #include "mpm/output.hpp"
 #include "mpm/solver.hpp"
 
@@ -95,17 +97,22 @@ class History {
     out_ << '\n';
   }
 
-  void row(double t, long step, double dt, const Simulation& sim, double elapsed) {
+  /// Writes a row; returns the force on each wall (what the CSV holds), for the peaks.
+  std::vector<Eigen::Vector3d> row(double t, long step, double dt, const Simulation& sim,
+                                   double elapsed) {
     const Energies e = sim.energies();
     const Eigen::Vector3d p = sim.momentum();
     out_ << t << ',' << step << ',' << dt << ',' << e.kinetic << ',' << e.strain << ',' << e.gravity
          << ',' << e.total();
     for (int d = 0; d < dim_; ++d) out_ << ',' << p[d];
+    std::vector<Eigen::Vector3d> forces;
     for (const auto& impulse : sim.wall_impulses()) {
-      for (int d = 0; d < dim_; ++d) out_ << ',' << (elapsed > 0 ? -impulse[d] / elapsed : 0.0);
+      forces.push_back(elapsed > 0 ? Eigen::Vector3d(-impulse / elapsed) : Eigen::Vector3d::Zero());
+      for (int d = 0; d < dim_; ++d) out_ << ',' << forces.back()[d];
     }
     out_ << '\n';
     out_.flush();
+    return forces;
   }
 
  private:
@@ -121,6 +128,94 @@ void write_json_atomically(const std::filesystem::path& file, const nlohmann::js
     if (!out.flush()) throw std::runtime_error("cannot write '" + tmp.string() + "'");
   }
   std::filesystem::rename(tmp, file);
+}
+
+/// Peak of |F| per wall over the history rows.
+struct ForcePeaks {
+  std::vector<double> peak, time;
+  std::vector<Eigen::Vector3d> vector;
+  void add(double t, const std::vector<Eigen::Vector3d>& forces) {
+    peak.resize(forces.size(), 0.0);
+    time.resize(forces.size(), 0.0);
+    vector.resize(forces.size(), Eigen::Vector3d::Zero());
+    for (std::size_t i = 0; i < forces.size(); ++i) {
+      if (forces[i].norm() > peak[i]) {
+        peak[i] = forces[i].norm();
+        time[i] = t;
+        vector[i] = forces[i];
+      }
+    }
+  }
+};
+
+Eigen::Vector3d frame_point(const ParticleFrame& f, std::size_t p) {
+  return {f.position[3 * p], f.position[3 * p + 1], f.position[3 * p + 2]};
+}
+
+/// What a hazard engineer reads first: how far the flow ran, where its mass went, whether mass
+/// was kept, and what each retaining wall holds back. Horizontal means perpendicular to gravity
+/// (all directions when there is none), so the numbers do not depend on how the scene is turned.
+nlohmann::json flow_summary(const Scene& scene, const ParticleFrame& first,
+                            const ParticleFrame& last) {
+  Eigen::Vector3d down = Eigen::Vector3d::Zero();
+  down.head(scene.dimension) = scene.gravity;
+  if (down.norm() > 0.0) down.normalize();
+  const auto horizontal = [&](const Eigen::Vector3d& v) -> Eigen::Vector3d {
+    return v - v.dot(down) * down;
+  };
+  double m0 = 0.0, m1 = 0.0, runout = 0.0, volume = 0.0;
+  Eigen::Vector3d c0 = Eigen::Vector3d::Zero(), c1 = Eigen::Vector3d::Zero();
+  const std::size_t n = std::min(first.count, last.count);
+  for (std::size_t p = 0; p < first.count; ++p) {
+    m0 += first.mass[p];
+    c0 += first.mass[p] * frame_point(first, p);
+  }
+  for (std::size_t p = 0; p < last.count; ++p) {
+    m1 += last.mass[p];
+    c1 += last.mass[p] * frame_point(last, p);
+    volume += last.volume[p];
+  }
+  for (std::size_t p = 0; p < n; ++p) {
+    runout = std::max(runout, horizontal(frame_point(last, p) - frame_point(first, p)).norm());
+  }
+  if (m0 > 0.0) c0 /= m0;
+  if (m1 > 0.0) c1 /= m1;
+  nlohmann::json out = {
+      {"mass_initial", m0},
+      {"mass_final", m1},
+      {"mass_relative_change", m0 > 0.0 ? (m1 - m0) / m0 : 0.0},
+      {"runout_distance", runout},
+      {"centroid_travel", horizontal(c1 - c0).norm()},
+      {"final_volume", volume},
+  };
+  for (const std::string& name : scene.retaining_walls) {
+    // The wall's Gamma facets, or those of the part the name picks (wall_part).
+    Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+    double count = 0.0;
+    for (const DualWallSpec& w : scene.dual_walls) {
+      const auto& layer = w.package->layer;
+      for (Eigen::Index f = 0; f < layer.wall_facets.rows(); ++f) {
+        const int part = layer.wall_facet_part[f];
+        const bool picked = w.name == name || (part < static_cast<int>(layer.part_names.size()) &&
+                                               w.name + "_" + layer.part_names[part] == name);
+        if (!picked) continue;
+        for (Eigen::Index k = 0; k < layer.wall_facets.cols(); ++k) {
+          centre.head(layer.nodes.cols()) += layer.nodes.row(layer.wall_facets(f, k)).transpose();
+          count += 1.0;
+        }
+      }
+    }
+    if (count > 0.0) centre /= count;
+    Eigen::Vector3d facing = horizontal(c0 - centre);
+    if (facing.norm() > 0.0) facing.normalize();
+    double retained = 0.0, passed = 0.0;
+    for (std::size_t p = 0; p < last.count; ++p) {
+      ((frame_point(last, p) - centre).dot(facing) > 0.0 ? retained : passed) += last.volume[p];
+    }
+    out["retaining_walls"][name] = {{"volume_on_source_side", retained},
+                                    {"volume_past_wall", passed}};
+  }
+  return out;
 }
 
 nlohmann::json energy_json(const Energies& e) {
@@ -179,9 +274,22 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   for (const auto& w : warnings) std::cerr << "mpm: warning: " << w << '\n';
   std::optional<std::string> failure;
   Progress progress(end, options.quiet);
+  ParticleFrame first;
+  ForcePeaks peaks;
 
   try {
-    writer->write(sim->frame(0.0, 0));
+    first = sim->frame(0.0, 0);
+    writer->write(first);
+    // Each dual-grid wall's layer (cells, Gamma and Phi facets) for ParaView next to the
+    // particles; only the geometry, not the coupling matrices (those are mpm prep's package).
+    for (const DualWallSpec& wall : scene.dual_walls) {
+      BoundaryPackage geometry;
+      geometry.grid = wall.package->grid;
+      geometry.layer = wall.package->layer;
+      geometry.source = wall.package->source;
+      save_boundary_package(geometry, out / ("wall_" + wall.name + ".h5"),
+                            out / ("wall_" + wall.name + ".xmf"));
+    }
     history->row(0.0, 0, 0.0, *sim, 0.0);
     bool last_written = true;
     while (t < end - eps) {
@@ -209,7 +317,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
         break;
       }
       if (scene.history_interval == 0.0 || t >= next_history - eps || t >= end - eps) {
-        history->row(t, step, dt, *sim, since_history);
+        peaks.add(t, history->row(t, step, dt, *sim, since_history));
         sim->reset_wall_impulses();
         since_history = 0.0;
         while (next_history <= t + eps && scene.history_interval > 0.0) {
@@ -252,6 +360,14 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       {"warnings", warnings},
   };
   if (failure) summary["error"] = *failure;
+  const std::vector<std::string> walls = sim->wall_names();
+  for (std::size_t i = 0; i < walls.size() && i < peaks.peak.size(); ++i) {
+    const Eigen::Vector3d& f = peaks.vector[i];
+    summary["walls"][walls[i]] = {{"peak_force", peaks.peak[i]},
+                                  {"peak_force_time", peaks.time[i]},
+                                  {"peak_force_vector", {f.x(), f.y(), f.z()}}};
+  }
+  summary["flow"] = flow_summary(scene, first, sim->frame(t, step));
   try {
     write_json_atomically(out / "summary.json", summary);
   } catch (const std::exception& e) {

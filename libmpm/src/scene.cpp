@@ -4,8 +4,11 @@
 #include "mpm/scene.hpp"
 
 #include "mpm/boundary_package.hpp"
+#include "mpmgeom/locator.hpp"
 
 #include <cmath>
+#include <limits>
+#include <numbers>
 
 #include <Eigen/Geometry>
 #include <fstream>
@@ -184,9 +187,38 @@ class Reader {
   std::set<std::string> known_;
 };
 
+/// A file named in a scene is relative to the scene's folder.
+std::filesystem::path scene_relative(const Scene& scene, const std::string& file) {
+  const std::filesystem::path path(file);
+  if (path.is_absolute() || scene.file.empty()) return path;
+  return scene.file.parent_path() / path;
+}
+
 Material read_material(Reader& r, int dim) {
-  const std::string model = r.choice("model", {"linear_elastic", "neo_hookean"});
+  const std::string model = r.choice(
+      "model", {"linear_elastic", "neo_hookean", "drucker_prager", "newtonian_fluid", "bingham"});
+  const bool elastic = model == "linear_elastic" || model == "neo_hookean";
+  if (!elastic && dim == 1) {
+    r.fail_at(r.child("model"), "\"" + model +
+                                    "\" needs dimension 2 or 3 (the 1D bar is in "
+                                    "uniaxial stress)");
+  }
   const double rho = r.positive("density");
+  if (model == "newtonian_fluid" || model == "bingham") {
+    const double c0 = r.positive("speed_of_sound");
+    const double gamma = r.in_range("gamma", 1.0, 20.0, false, 7.0);
+    if (gamma == 1.0) r.fail_at(r.child("gamma"), "expected gamma > 1 (Tait exponent), got 1");
+    if (model == "newtonian_fluid") {
+      const double mu = r.in_range("viscosity", 0.0, 1e12, false, 0.0);
+      return NewtonianFluid{rho, c0, gamma, mu};
+    }
+    return Bingham{rho,
+                   c0,
+                   gamma,
+                   r.in_range("yield_stress", 0.0, 1e12, false),
+                   r.in_range("plastic_viscosity", 0.0, 1e12, false),
+                   r.positive("regularization", 100.0)};
+  }
   const double E = r.positive("youngs_modulus");
   // The 1D bar is in uniaxial stress and does not use nu; 2D/3D need it.
   const double nu =
@@ -198,7 +230,31 @@ Material read_material(Reader& r, int dim) {
                   Reader::fmt(nu));
   }
   if (model == "linear_elastic") return LinearElastic{rho, E, nu};
-  return NeoHookean{rho, E, nu};
+  if (model == "neo_hookean") return NeoHookean{rho, E, nu};
+  // Drucker-Prager matched to Mohr-Coulomb in plane strain.
+  const double deg = std::numbers::pi / 180.0;
+  const double phi = r.in_range("friction_angle", 0.0, 90.0, true) * deg;
+  const double psi = r.in_range("dilatancy_angle", 0.0, 90.0, true, 0.0) * deg;
+  if (psi > phi) {
+    r.fail_at(r.child("dilatancy_angle"), "expected a dilatancy angle <= the friction angle (" +
+                                              Reader::fmt(phi / deg) + " degrees), got " +
+                                              Reader::fmt(psi / deg));
+  }
+  const double c = r.in_range("cohesion", 0.0, 1e15, false, 0.0);
+  const auto match = [](double angle) {
+    const double t = std::tan(angle);
+    return std::sqrt(9.0 + 12.0 * t * t);
+  };
+  DruckerPrager dp{
+      rho, E, nu, std::tan(phi) / match(phi), std::tan(psi) / match(psi), 3.0 * c / match(phi),
+      0.0};
+  if (dp.alpha <= 0.0 && !r.has("tension_cutoff")) {
+    r.fail_at(r.child("friction_angle"),
+              "a friction angle of 0 needs an explicit tension_cutoff (the cone has no apex)");
+  }
+  const double apex = dp.alpha > 0.0 ? dp.k / (3.0 * dp.alpha) : 1e300;
+  dp.tension_cutoff = r.in_range("tension_cutoff", 0.0, apex, false, dp.alpha > 0.0 ? apex : 0.0);
+  return dp;
 }
 
 BodySpec read_body(Reader& r, int index, const Scene& scene,
@@ -228,9 +284,10 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
   }
 
   Reader shape = r.object("shape");
-  const std::vector<std::string> types =
-      dim == 1 ? std::vector<std::string>{"box", "segment"}
-               : std::vector<std::string>{"box", dim == 2 ? "disk" : "sphere"};
+  const std::vector<std::string> types = dim == 1 ? std::vector<std::string>{"box", "segment"}
+                                         : dim == 2
+                                             ? std::vector<std::string>{"box", "disk"}
+                                             : std::vector<std::string>{"box", "sphere", "mesh"};
   const std::string type = shape.choice("type", types);
   Eigen::VectorXd lo, hi;
   if (type == "box" || type == "segment") {
@@ -273,6 +330,34 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
         hi = hi.cwiseMax(x);
       }
     }
+  } else if (type == "mesh") {
+    // A closed surface (a source volume from CAD or a terrain tool) filled on the grid's
+    // sub-cell lattice.
+    body.shape = BodySpec::Shape::mesh;
+    mpmgeom::ImportOptions import;
+    import.scale = shape.positive("scale", 1.0);
+    import.translation = shape.vector("translate", 3, Eigen::VectorXd::Zero(3)).head<3>();
+    import.rotation_deg = shape.vector("rotate", 3, Eigen::VectorXd::Zero(3)).head<3>();
+    const std::filesystem::path file = scene_relative(scene, shape.string("file"));
+    try {
+      mpmgeom::RepairOptions repair;
+      repair.require_closed = true;
+      const mpmgeom::TriangleMesh mesh = mpmgeom::validate_and_repair(
+          mpmgeom::load_mesh(file, import), file.string(), repair, nullptr);
+      body.points = mpmgeom::fill_closed_surface(mesh, scene.box_min.head<3>(), scene.spacing,
+                                                 body.particles_per_cell);
+    } catch (const std::exception& e) {
+      shape.fail_at(shape.child("file"), e.what());
+    }
+    if (body.points.rows() == 0) {
+      shape.fail_at(shape.child("file"), file.string() +
+                                             " encloses no particle position at "
+                                             "spacing " +
+                                             Reader::fmt(scene.spacing) +
+                                             " (too thin for the grid?)");
+    }
+    lo = body.points.colwise().minCoeff().transpose();
+    hi = body.points.colwise().maxCoeff().transpose();
   } else {
     body.shape = BodySpec::Shape::sphere;
     body.center = shape.vector("center", dim);
@@ -336,13 +421,6 @@ BoxWall read_wall(Reader& r, int dim) {
   }
   wall.contact = read_contact(r, false);
   return wall;
-}
-
-/// A file named in a scene is relative to the scene's folder.
-std::filesystem::path scene_relative(const Scene& scene, const std::string& file) {
-  const std::filesystem::path path(file);
-  if (path.is_absolute() || scene.file.empty()) return path;
-  return scene.file.parent_path() / path;
 }
 
 /// A dual-grid wall: the surface it follows, its layer and coupling, built here so that any
@@ -414,8 +492,34 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
         prep.import.rotation_deg = surface.vector("rotate", 3, Eigen::VectorXd::Zero(3)).head<3>();
         prep.remesh = surface.boolean("remesh", true);
         prep.repair.require_closed = surface.boolean("closed", false);
-        const std::string file = surface.string("file");
-        *package = prepare_boundary(scene_relative(scene, file), prep, grid);
+        const std::filesystem::path mesh_file = scene_relative(scene, surface.string("file"));
+        // "cache": a package file reused while it matches the mesh bytes, the options and the
+        // grid (its digest), else rebuilt here and written there for the next run.
+        std::filesystem::path cache;
+        if (surface.has("cache")) cache = scene_relative(scene, surface.string("cache"));
+        const std::string digest = boundary_digest(mesh_file, prep, grid);
+        bool reused = false;
+        std::error_code ec;
+        if (!cache.empty() && std::filesystem::is_regular_file(cache, ec)) {
+          try {
+            BoundaryPackage cached = load_boundary_package(cache);
+            if (cached.source_digest == digest) {
+              *package = std::move(cached);
+              reused = true;
+            }
+          } catch (const std::exception&) {
+            // An unreadable or foreign cache file is rebuilt below, not an error.
+          }
+        }
+        if (!reused) {
+          *package = prepare_boundary(mesh_file, prep, grid);
+          if (!cache.empty()) {
+            std::filesystem::path xmf = cache;
+            xmf.replace_extension(".xmf");
+            if (cache.has_parent_path()) std::filesystem::create_directories(cache.parent_path());
+            save_boundary_package(*package, cache, xmf);
+          }
+        }
       }
       if (type != "mesh") {
         package->interface_coupling =
@@ -566,8 +670,10 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
     scene.cfl = time.in_range("cfl", 1e-6, 1.0, false, 0.5);
     if (time.has("dt")) {
       scene.fixed_dt = time.positive("dt");
-      // Explicit MPM is stable for dt <= h / c (CFL number 1) at best.
-      const double limit = scene.spacing / max_wave_speed(scene);
+      // Explicit MPM is stable for dt <= h / c (CFL number 1) at best, and for viscous
+      // materials dt <= rho h^2 / (2 D mu).
+      const double limit = std::min(scene.spacing / max_wave_speed(scene),
+                                    viscous_dt_limit(scene, scene.spacing) / scene.cfl);
       if (*scene.fixed_dt > limit) {
         time.fail_at(time.child("dt"),
                      "time step " + Reader::fmt(*scene.fixed_dt) +
@@ -585,6 +691,30 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
     scene.history_interval = output.number("history_interval", 0.0);
     if (scene.history_interval < 0.0) {
       output.fail_at(output.child("history_interval"), "expected a number >= 0 (0: every step)");
+    }
+    if (output.has("retaining_walls")) {
+      const json& names = output.required("retaining_walls");
+      if (!names.is_array()) {
+        output.fail_at(output.child("retaining_walls"), "expected an array of wall names");
+      }
+      for (std::size_t i = 0; i < names.size(); ++i) {
+        // A dual-grid wall, or one part of it as the force history names it (wall_part).
+        const auto matches = [&](const DualWallSpec& w) {
+          if (!names[i].is_string()) return false;
+          const std::string name = names[i].get<std::string>();
+          if (w.name == name) return true;
+          for (const auto& part : w.package->layer.part_names) {
+            if (w.name + "_" + part == name) return true;
+          }
+          return false;
+        };
+        if (!std::any_of(scene.dual_walls.begin(), scene.dual_walls.end(), matches)) {
+          output.fail_at(output.child("retaining_walls") + "/" + std::to_string(i),
+                         "expected the name of a dual-grid wall in /walls (or wall_part), got " +
+                             describe(names[i]));
+        }
+        scene.retaining_walls.push_back(names[i].get<std::string>());
+      }
     }
     output.finish();
   }
@@ -625,7 +755,22 @@ std::string_view to_string(ShapeKind kind) {
 }
 
 std::string_view model_name(const Material& m) {
-  return std::holds_alternative<LinearElastic>(m) ? "linear_elastic" : "neo_hookean";
+  static constexpr std::string_view names[] = {"linear_elastic", "neo_hookean", "drucker_prager",
+                                               "newtonian_fluid", "bingham"};
+  static_assert(std::size(names) == std::variant_size_v<Material>);
+  return names[m.index()];
+}
+
+double viscous_dt_limit(const Scene& scene, double size) {
+  double limit = std::numeric_limits<double>::infinity();
+  for (const auto& m : scene.materials) {
+    const double mu = max_viscosity(m.model);
+    if (mu > 0.0) {
+      limit = std::min(limit,
+                       scene.cfl * density(m.model) * size * size / (2.0 * scene.dimension * mu));
+    }
+  }
+  return limit;
 }
 
 }  // namespace mpm

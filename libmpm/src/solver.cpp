@@ -126,6 +126,15 @@ void Solver<D>::fill_bodies() {
       }
       continue;
     }
+    if (body.shape == BodySpec::Shape::mesh) {
+      if constexpr (D == 3) {
+        for (Eigen::Index i = 0; i < body.points.rows(); ++i) {
+          seeds.push_back(
+              {body.points.row(i).transpose(), static_cast<int>(b), std::pow(h / n, D)});
+        }
+      }
+      continue;
+    }
     Vec<D> lo, hi;
     if (body.shape == BodySpec::Shape::box) {
       lo = to_vec<D>(body.min);
@@ -196,7 +205,8 @@ double Solver<D>::stable_dt(double cfl) const {
   const double layer_factor = scene_.transfer == Transfer::apic ? 0.5 : 1.0;
   double size = grid.h;
   for (const auto& w : dual_) size = std::min(size, layer_factor * w.min_cell_size);
-  return cfl * size / (max_wave_speed(scene_) + max_speed_);
+  const double dt = cfl * size / (max_wave_speed(scene_) + max_speed_);
+  return std::min(dt, viscous_dt_limit(scene_, size));
 }
 
 template <int D>
@@ -496,7 +506,7 @@ void Solver<D>::update_stress(double dt) {
           tbb::parallel_for(tbb::blocked_range<std::size_t>(b, e, 1024), [&](const auto& r) {
             for (std::size_t p = r.begin(); p != r.end(); ++p) {
               mpm::update_stress<D>(material, P.velocity_gradient[p], dt, P.deformation_gradient[p],
-                                    P.stress[p]);
+                                    P.stress[p], P.state[p]);
             }
           });
         },
@@ -569,8 +579,8 @@ Energies Solver<D>::energies() const {
     std::visit(
         [&, b = begin, en = end](const auto& material) {
           for (std::size_t p = b; p < en; ++p) {
-            e.strain +=
-                strain_energy<D>(material, P.deformation_gradient[p], P.stress[p], P.volume0[p]);
+            e.strain += strain_energy<D>(material, P.deformation_gradient[p], P.stress[p],
+                                         P.volume0[p], P.state[p].stress_zz);
           }
         },
         scene_.materials[P.material[begin]].model);

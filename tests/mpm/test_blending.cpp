@@ -587,7 +587,7 @@ TEST_P(LoneParticle, StiffParticleAgainstWallNeverGainsEnergy) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Method, LoneParticle, ::testing::Values("mortar", "enhanced"),
-                         [](const auto& info) { return std::string(info.param); });
+                         [](const auto& param_info) { return std::string(param_info.param); });
 
 TEST(BlendingFreeFlight, OneWayDoesNotConserveMomentum1D) {
   const auto start = std::chrono::steady_clock::now();

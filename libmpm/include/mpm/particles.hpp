@@ -5,6 +5,7 @@
 #include <cstddef>
 #include <vector>
 
+#include "mpm/material.hpp"
 #include "mpm/types.hpp"
 
 namespace mpm {
@@ -15,7 +16,8 @@ struct Particles {
   std::vector<Vec<D>> velocity;
   std::vector<Mat<D>> affine;  ///< APIC velocity matrix C_p (zero for PIC/FLIP)
   std::vector<Mat<D>> deformation_gradient;
-  std::vector<Mat<D>> stress;  ///< Cauchy stress
+  std::vector<Mat<D>> stress;     ///< Cauchy stress
+  std::vector<PointState> state;  ///< out-of-plane stress, plastic strain (material.hpp)
   std::vector<double> mass;
   std::vector<double> volume0;     ///< initial volume; current volume = det(F) * volume0
   std::vector<double> half_width;  ///< uGIMP half particle size in grid units (fixed)
@@ -40,6 +42,7 @@ struct Particles {
     affine.resize(n, Mat<D>::Zero());
     deformation_gradient.resize(n, Mat<D>::Identity());
     stress.resize(n, Mat<D>::Zero());
+    state.resize(n, PointState{});
     mass.resize(n, 0.0);
     volume0.resize(n, 0.0);
     half_width.resize(n, 0.0);

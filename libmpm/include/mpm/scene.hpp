@@ -32,7 +32,7 @@ struct MaterialSpec {
 };
 
 struct BodySpec {
-  enum class Shape { box, sphere };
+  enum class Shape { box, sphere, mesh };
   std::string name;
   int material = 0;
   Shape shape = Shape::box;
@@ -44,6 +44,9 @@ struct BodySpec {
   /// Seeded on the box's own lattice: rotated, or "lattice": "body" (a box or segment whose
   /// faces must sit exactly at min/max, e.g. a bar flush against a wall between grid nodes).
   bool own_lattice = false;
+  /// Mesh bodies (3D): the particle positions that fill the closed surface, one per sub-cell
+  /// centre inside it (found when the scene is read, so a bad mesh fails against its key).
+  Eigen::MatrixX3d points;
   Eigen::VectorXd center;  ///< sphere/disk centre (dim)
   double radius = 0.0;
   int particles_per_cell = 2;  ///< per direction
@@ -110,6 +113,9 @@ struct Scene {
   std::optional<double> fixed_dt;  ///< set: fixed step; unset: adaptive from the CFL number
   double output_interval = 0.0;
   double history_interval = 0.0;  ///< 0: every step
+  /// Dual-grid walls (by name) whose retained volume summary.json reports: the particle volume
+  /// on the source side of the vertical plane through the wall's centre that faces the source.
+  std::vector<std::string> retaining_walls;
   std::vector<MaterialSpec> materials;
   std::vector<BodySpec> bodies;
   std::vector<BoxWall> walls;
@@ -120,6 +126,10 @@ struct Scene {
 Scene load_scene(const std::filesystem::path& file);
 /// Same for an in-memory document; `origin` names it in messages.
 Scene parse_scene(const nlohmann::json& doc, const std::filesystem::path& origin);
+
+/// Explicit viscous step limit cfl * rho size^2 / (2 D mu_max) over the scene's materials
+/// (infinite when none is viscous).
+double viscous_dt_limit(const Scene& scene, double size);
 
 /// Largest wave speed over the scene's materials at the reference state.
 double max_wave_speed(const Scene& scene);
