@@ -481,8 +481,27 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
           }
           polyline.row(static_cast<Eigen::Index>(i)) << pt[0].get<double>(), pt[1].get<double>();
         }
-        package->layer = mpmgeom::extrude_layer_2d(polyline, surface.boolean("closed", false),
-                                                   layer, wall.name, &package->report);
+        const bool closed = surface.boolean("closed", false);
+        if (surface.boolean("remesh", true)) {
+          // Segments of at most h, as the 3D reader remeshes meshes to h: a straight wall written
+          // as two points would otherwise be one boundary cell carrying everything on its ends.
+          std::vector<Eigen::RowVector2d> cut;
+          const Eigen::Index n = polyline.rows();
+          const Eigen::Index segments = closed ? n : n - 1;
+          for (Eigen::Index i = 0; i < segments; ++i) {
+            const Eigen::RowVector2d a = polyline.row(i), b = polyline.row((i + 1) % n);
+            const int pieces =
+                std::max(1, static_cast<int>(std::ceil((b - a).norm() / scene.spacing - 1e-9)));
+            for (int k = 0; k < pieces; ++k) cut.push_back(a + (b - a) * (double(k) / pieces));
+          }
+          if (!closed) cut.push_back(polyline.row(n - 1));
+          polyline.resize(static_cast<Eigen::Index>(cut.size()), 2);
+          for (std::size_t i = 0; i < cut.size(); ++i) {
+            polyline.row(static_cast<Eigen::Index>(i)) = cut[i];
+          }
+        }
+        package->layer =
+            mpmgeom::extrude_layer_2d(polyline, closed, layer, wall.name, &package->report);
       } else {
         PrepOptions prep;
         prep.layer = layer;

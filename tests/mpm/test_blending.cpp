@@ -672,8 +672,9 @@ struct InclineScene {
 
 /// 2D: a straight polyline running downhill (the material on its left) in segments of about
 /// `segment`; the block (0.3 x 0.15) rotated to lie flat on it, 1e-6 above it.
+/// remesh false: the polyline as given (the reader otherwise cuts it into segments of h).
 InclineScene incline_2d(double theta_deg, double mu, double segment, double cfl,
-                        const std::string& method) {
+                        const std::string& method, bool remesh = true) {
   const double theta = theta_deg * std::numbers::pi / 180.0;
   const Eigen::Vector2d origin(0.013, 0.027), s(std::cos(theta), -std::sin(theta)),
       n(std::sin(theta), std::cos(theta));
@@ -693,7 +694,8 @@ InclineScene incline_2d(double theta_deg, double mu, double segment, double cfl,
                {"particles_per_cell", 2}};
   json surface = {{"type", "polyline"},
                   {"points", polyline_json(origin, s, u0, u1, segment)},
-                  {"closed", false}};
+                  {"closed", false},
+                  {"remesh", remesh}};
   InclineScene out;
   out.doc =
       incline_doc(2, lo, hi, std::move(body), incline_wall(mu, std::move(surface), method), cfl);
@@ -870,12 +872,13 @@ void check_incline_sweep(const std::string& label, double mu,
 class BlendingIncline : public ::testing::TestWithParam<std::tuple<const char*, double>> {};
 
 void sweep_2d(const std::string& label, double segment, double cfl,
-              double normal_speed_bound = 0.01) {
+              double normal_speed_bound = 0.01, bool remesh = true) {
   const auto start = std::chrono::steady_clock::now();
   const auto [method, mu] = BlendingIncline::GetParam();
   std::vector<InclineResult> results;
   for (double theta : kInclineAngles) {
-    results.push_back(run_incline<2>(incline_2d(theta, mu, segment, cfl, method), theta, mu));
+    results.push_back(
+        run_incline<2>(incline_2d(theta, mu, segment, cfl, method, remesh), theta, mu));
   }
   check_incline_sweep(std::string(method) + " " + label, mu, results, normal_speed_bound);
   std::printf("took %.2f s\n", seconds_since(start));
@@ -887,9 +890,9 @@ TEST_P(BlendingIncline, AngleInvariance2D) {
   sweep_2d("2D segments of h, CFL 0.2", kInclineH, 0.2);
 }
 
-// The polyline as a user writes a straight incline, its two end points (one boundary-grid cell
-// 1.2 m long), at CFL 0.4.
-TEST_P(BlendingIncline, AngleInvariance2DTwoPointWall) {
+// The polyline as a user writes a straight incline, its two end points, kept as one boundary-grid
+// cell 1.2 m long ("remesh": false), at CFL 0.4.
+TEST_P(BlendingIncline, AngleInvariance2DTwoPointWallNotRemeshed) {
   // Enhanced on this wall has two Gamma nodes 1.2 m apart: the enhancement is one linear
   // function along the whole wall and the wall condition holds in the mean over it, so the block
   // settles into the wall by ~0.1 h and its largest normal speed is 0.0117 g T (at 58 degrees,
@@ -897,7 +900,13 @@ TEST_P(BlendingIncline, AngleInvariance2DTwoPointWall) {
   // stay within 0.5% and nothing passes the wall. Walls meshed at h (the 3D default, and the
   // other 2D tests) meet 0.01; this case is held to 0.02.
   const bool enhanced = std::string(std::get<0>(GetParam())) == "enhanced";
-  sweep_2d("2D two-point wall, CFL 0.4", 10.0, 0.4, enhanced ? 0.02 : 0.01);
+  sweep_2d("2D two-point wall, CFL 0.4", 10.0, 0.4, enhanced ? 0.02 : 0.01, false);
+}
+
+// The same two points as the reader takes them by default (cut into segments of h): the bound
+// of the walls meshed at h.
+TEST_P(BlendingIncline, AngleInvariance2DTwoPointWallRemeshed) {
+  sweep_2d("2D two-point wall remeshed to h, CFL 0.4", 10.0, 0.4);
 }
 
 // Segments of h at CFL 0.4. Before stable_dt counted the layer cells at half their size under
