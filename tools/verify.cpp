@@ -61,20 +61,22 @@ struct Run {
   std::string fault;
 };
 
-/// Runs `doc` to its end time; `observe(sim, t, dt)` after every step.
-// --scenes DIR: where each scene goes, and the name of the case/method/resolution running.
-std::filesystem::path g_scene_dir;
-std::string g_scene_prefix;
-int g_scene_count = 0;
+/// --scenes DIR: where run_scene_doc writes each scene, named after the case, method and
+/// resolution running (set by verify_command) and a count within them.
+struct SceneDump {
+  std::filesystem::path dir;
+  std::string prefix;
+  int count = 0;
+} g_dump;
 
+/// Runs `doc` to its end time; `observe(sim, t, dt)` after every step.
 Run run_scene_doc(const json& doc, const std::string& label,
                   const std::function<void(Simulation&, double, double)>& observe) {
   Run r;
   const auto start = std::chrono::steady_clock::now();
-  if (!g_scene_dir.empty()) {
+  if (!g_dump.dir.empty()) {
     // --scenes: every scene as a file `mpm run` takes, to rerun one configuration alone.
-    const auto file =
-        g_scene_dir / (g_scene_prefix + "_" + std::to_string(g_scene_count++) + ".json");
+    const auto file = g_dump.dir / (g_dump.prefix + "_" + std::to_string(g_dump.count++) + ".json");
     std::ofstream out(file);
     out << doc.dump(1) << "\n";
     if (!out) throw std::runtime_error("cannot write " + file.string());
@@ -712,12 +714,12 @@ const std::map<std::string, Checker>& checkers() {
 
 int verify_command(const VerifyArgs& args) {
   std::vector<Check> checks;
-  g_scene_dir = args.scene_dir;
-  if (!g_scene_dir.empty()) {
+  g_dump.dir = args.scene_dir;
+  if (!g_dump.dir.empty()) {
     std::error_code ec;
-    std::filesystem::create_directories(g_scene_dir, ec);
-    if (ec || !std::filesystem::is_directory(g_scene_dir)) {
-      std::cerr << "mpm verify: --scenes " << g_scene_dir.string() << ": not a writable folder\n";
+    std::filesystem::create_directories(g_dump.dir, ec);
+    if (ec || !std::filesystem::is_directory(g_dump.dir)) {
+      std::cerr << "mpm verify: --scenes " << g_dump.dir.string() << ": not a writable folder\n";
       return 2;
     }
   }
@@ -766,8 +768,8 @@ int verify_command(const VerifyArgs& args) {
     for (const std::string& method : methods) {
       for (const int k : resolutions) {
         std::vector<Check> got;
-        g_scene_prefix = name + "_" + method + "_k" + std::to_string(k);
-        g_scene_count = 0;
+        g_dump.prefix = name + "_" + method + "_k" + std::to_string(k);
+        g_dump.count = 0;
         try {
           got = checkers().at(name)(p.at("params"), method, k);
         } catch (const std::exception& e) {

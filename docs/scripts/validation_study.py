@@ -68,6 +68,37 @@ def front(x, h):
     return xs[-1]
 
 
+def scene_2d(name, grid_max, h, material, body, walls, end, interval, history, cfl=0.5):
+    """A plane-strain scene on [0, grid_max] with quadratic B-splines, MUSL, APIC, gravity."""
+    return {
+        "name": name,
+        "dimension": 2,
+        "grid": {"min": [0.0, 0.0], "max": grid_max, "spacing": h},
+        "shape_function": "bspline2",
+        "scheme": {"update": "musl", "transfer": "apic"},
+        "gravity": [0.0, -G],
+        "materials": [material],
+        "bodies": [dict(body, material=material["name"], particles_per_cell=2)],
+        "walls": walls,
+        "time": {"end": end, "cfl": cfl},
+        "output": {"interval": interval, "history_interval": history},
+    }
+
+
+def granular(name, rho, E):
+    """Drucker-Prager, nu 0.3, phi 30 degrees, no dilatancy, no cohesion."""
+    return {"name": name, "model": "drucker_prager", "density": rho, "youngs_modulus": E,
+            "poisson_ratio": 0.3, "friction_angle": 30.0, "dilatancy_angle": 0.0,
+            "cohesion": 0.0}
+
+
+def box_wall(face, mu=0.0):
+    wall = {"face": face, "condition": "friction" if mu > 0 else "slip", "separable": True}
+    if mu > 0:
+        wall["mu"] = mu
+    return wall
+
+
 # --- (1) granular column collapse --------------------------------------------------------------
 
 RATIOS = [0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0]
@@ -85,26 +116,11 @@ def lube(a):
 def collapse_scene(a, h):
     H0 = a * L0
     reach = L0 * (1.0 + 2.5 * max(1.2 * a, 1.9 * a ** (2.0 / 3.0)))
-    return {
-        "name": f"collapse_a{a}",
-        "dimension": 2,
-        "grid": {"min": [0.0, 0.0], "max": [h * math.ceil(reach / h),
-                                             h * math.ceil(1.1 * H0 / h + 4)], "spacing": h},
-        "shape_function": "bspline2",
-        "scheme": {"update": "musl", "transfer": "apic"},
-        "gravity": [0.0, -G],
-        "materials": [{"name": "sand", "model": "drucker_prager", "density": 1600.0,
-                       "youngs_modulus": 2.0e6, "poisson_ratio": 0.3, "friction_angle": 30.0,
-                       "dilatancy_angle": 0.0, "cohesion": 0.0}],
-        "bodies": [{"name": "column", "material": "sand", "particles_per_cell": 2,
-                    "shape": {"type": "box", "min": [0.0, 0.0], "max": [L0, H0]}}],
-        "walls": [
-            {"face": "xmin", "condition": "slip", "separable": True},
-            {"face": "ymin", "condition": "friction", "mu": 0.5, "separable": True},
-        ],
-        "time": {"end": 4.0 * math.sqrt(H0 / G) + 0.3, "cfl": 0.5},
-        "output": {"interval": 0.05, "history_interval": 0.01},
-    }
+    return scene_2d(
+        f"collapse_a{a}", [h * math.ceil(reach / h), h * math.ceil(1.1 * H0 / h + 4)], h,
+        granular("sand", 1600.0, 2.0e6),
+        {"name": "column", "shape": {"type": "box", "min": [0.0, 0.0], "max": [L0, H0]}},
+        [box_wall("xmin"), box_wall("ymin", 0.5)], 4.0 * math.sqrt(H0 / G) + 0.3, 0.05, 0.01)
 
 
 def collapse(work):
@@ -149,22 +165,13 @@ def collapse(work):
 
 def dambreak(work):
     a, h = 0.2, 0.2 / 32
-    scene = {
-        "name": "dambreak",
-        "dimension": 2,
-        "grid": {"min": [0.0, 0.0], "max": [1.2, 0.3], "spacing": h},
-        "shape_function": "bspline2",
-        "scheme": {"update": "musl", "transfer": "apic"},
-        "gravity": [0.0, -G],
-        "materials": [{"name": "water", "model": "newtonian_fluid", "density": 1000.0,
-                       "speed_of_sound": 25.0, "viscosity": 1.0e-3}],
-        "bodies": [{"name": "column", "material": "water", "particles_per_cell": 2,
-                    "shape": {"type": "box", "min": [0.0, 0.0], "max": [a, a]}}],
-        "walls": [{"face": f, "condition": "slip", "separable": True}
-                  for f in ("xmin", "ymin", "xmax")],
-        "time": {"end": 3.2 / math.sqrt(2 * G / a), "cfl": 0.4},
-        "output": {"interval": 0.1 / math.sqrt(2 * G / a), "history_interval": 0.01},
-    }
+    water = {"name": "water", "model": "newtonian_fluid", "density": 1000.0,
+             "speed_of_sound": 25.0, "viscosity": 1.0e-3}
+    scene = scene_2d(
+        "dambreak", [1.2, 0.3], h, water,
+        {"name": "column", "shape": {"type": "box", "min": [0.0, 0.0], "max": [a, a]}},
+        [box_wall(f) for f in ("xmin", "ymin", "xmax")], 3.2 / math.sqrt(2 * G / a),
+        0.1 / math.sqrt(2 * G / a), 0.01, cfl=0.4)
     out, summary = run(scene, "dambreak", work)
     scale = math.sqrt(2 * G / a)
     T, Z = [], []
@@ -203,27 +210,13 @@ GAP, MU_FLOOR = 0.05, 0.4  # stream starts GAP from the wall on a floor with fri
 
 def impact_scene(v0, depth, length, h, wall_x):
     # Floor and wall on box faces (slip): the horizontal force on the xmax face is the wall's.
-    return {
-        "name": f"impact_v{v0}",
-        "dimension": 2,
-        "grid": {"min": [0.0, 0.0], "max": [wall_x, 2.5], "spacing": h},
-        "shape_function": "bspline2",
-        "scheme": {"update": "musl", "transfer": "apic"},
-        "gravity": [0.0, -G],
-        "materials": [{"name": "debris", "model": "drucker_prager", "density": 1800.0,
-                       "youngs_modulus": 5.0e6, "poisson_ratio": 0.3, "friction_angle": 30.0,
-                       "dilatancy_angle": 0.0, "cohesion": 0.0}],
-        "bodies": [{"name": "flow", "material": "debris", "particles_per_cell": 2,
-                    "velocity": [v0, 0.0],
-                    "shape": {"type": "box", "min": [wall_x - GAP - length, 0.0],
-                              "max": [wall_x - GAP, depth]}}],
-        "walls": [{"face": "ymin", "condition": "friction", "mu": MU_FLOOR, "separable": True},
-                  {"face": "xmin", "condition": "slip", "separable": True},
-                  {"face": "xmax", "condition": "slip", "separable": True},
-                  {"face": "ymax", "condition": "slip", "separable": True}],
-        "time": {"end": 2.5, "cfl": 0.5},
-        "output": {"interval": 0.05, "history_interval": 0.005},
-    }
+    return scene_2d(
+        f"impact_v{v0}", [wall_x, 2.5], h, granular("debris", 1800.0, 5.0e6),
+        {"name": "flow", "velocity": [v0, 0.0],
+         "shape": {"type": "box", "min": [wall_x - GAP - length, 0.0],
+                   "max": [wall_x - GAP, depth]}},
+        [box_wall("ymin", MU_FLOOR), box_wall("xmin"), box_wall("xmax"), box_wall("ymax")],
+        2.5, 0.05, 0.005)
 
 
 def impact(work):

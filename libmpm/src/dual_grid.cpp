@@ -160,7 +160,9 @@ void Solver<D>::layer_scatter(bool with_force) {
     if (with_force) {
       std::fill(w.mass.begin(), w.mass.end(), 0.0);
       std::fill(w.force.begin(), w.force.end(), Vec<D>::Zero());
-      for (const int n : w.wall_nodes) w.touch_gap[n] = std::numeric_limits<double>::infinity();
+      if (w.spec->contact.separable) {
+        for (const int n : w.wall_nodes) w.touch_gap[n] = std::numeric_limits<double>::infinity();
+      }
     }
     std::fill(w.momentum.begin(), w.momentum.end(), Vec<D>::Zero());
   }
@@ -179,12 +181,15 @@ void Solver<D>::layer_scatter(bool with_force) {
     // C_p back, so a particle alone in a boundary cell would keep straining at a fixed rate
     // that its stress never corrects (docs/verification.md, particle against a wall).
     const Mat<D> C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
-    const Mat<D> vs = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p];
-    const Vec<D> mb = m * body_acceleration_[P.body[p]];
-    // The particle's half-size (current volume as a cube), widened by the touch tolerance.
     const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
+    const Mat<D> vs = -volume * P.stress[p];
+    const Vec<D> mb = m * body_acceleration_[P.body[p]];
+    // Separable walls: the particle's half-size (current volume as a cube), widened by the
+    // touch tolerance, for the touch test of layer_walls() and enhanced_assemble().
+    const bool touch = with_force && w.spec->contact.separable;
     const double reach =
-        (1.0 + w.spec->contact.touch_tolerance) * 0.5 * std::pow(std::abs(volume), 1.0 / D);
+        touch ? (1.0 + w.spec->contact.touch_tolerance) * 0.5 * std::pow(std::abs(volume), 1.0 / D)
+              : 0.0;
     for (int k = 0; k < st.count; ++k) {
       const int node = st.node[k];
       const double N = st.N[k];
@@ -193,7 +198,7 @@ void Solver<D>::layer_scatter(bool with_force) {
         w.mass[node] += N * m;
         w.force[node] += vs * st.dN[k] + N * mb;
         const int i = w.wall_index_of_node[node];
-        if (i >= 0) {
+        if (touch && i >= 0) {
           const double gap = (P.position[p] - w.position[node]).dot(w.wall_normal[i]) - reach;
           w.touch_gap[node] = std::min(w.touch_gap[node], gap);
         }

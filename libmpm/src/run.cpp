@@ -130,19 +130,17 @@ void write_json_atomically(const std::filesystem::path& file, const nlohmann::js
   std::filesystem::rename(tmp, file);
 }
 
-/// Peak of |F| per wall over the history rows.
+/// The largest force (by magnitude) on each wall over the history rows, and when.
 struct ForcePeaks {
-  std::vector<double> peak, time;
-  std::vector<Eigen::Vector3d> vector;
+  std::vector<Eigen::Vector3d> force;
+  std::vector<double> time;
   void add(double t, const std::vector<Eigen::Vector3d>& forces) {
-    peak.resize(forces.size(), 0.0);
+    force.resize(forces.size(), Eigen::Vector3d::Zero());
     time.resize(forces.size(), 0.0);
-    vector.resize(forces.size(), Eigen::Vector3d::Zero());
     for (std::size_t i = 0; i < forces.size(); ++i) {
-      if (forces[i].norm() > peak[i]) {
-        peak[i] = forces[i].norm();
+      if (forces[i].norm() > force[i].norm()) {
+        force[i] = forces[i];
         time[i] = t;
-        vector[i] = forces[i];
       }
     }
   }
@@ -188,21 +186,16 @@ nlohmann::json flow_summary(const Scene& scene, const ParticleFrame& first,
       {"centroid_travel", horizontal(c1 - c0).norm()},
       {"final_volume", volume},
   };
-  for (const std::string& name : scene.retaining_walls) {
-    // The wall's Gamma facets, or those of the part the name picks (wall_part).
+  for (const Scene::RetainingWall& retaining : scene.retaining_walls) {
+    // The centre of the wall's Gamma facets, or of its part's.
+    const auto& layer = scene.dual_walls[static_cast<std::size_t>(retaining.wall)].package->layer;
     Eigen::Vector3d centre = Eigen::Vector3d::Zero();
     double count = 0.0;
-    for (const DualWallSpec& w : scene.dual_walls) {
-      const auto& layer = w.package->layer;
-      for (Eigen::Index f = 0; f < layer.wall_facets.rows(); ++f) {
-        const int part = layer.wall_facet_part[f];
-        const bool picked = w.name == name || (part < static_cast<int>(layer.part_names.size()) &&
-                                               w.name + "_" + layer.part_names[part] == name);
-        if (!picked) continue;
-        for (Eigen::Index k = 0; k < layer.wall_facets.cols(); ++k) {
-          centre.head(layer.nodes.cols()) += layer.nodes.row(layer.wall_facets(f, k)).transpose();
-          count += 1.0;
-        }
+    for (Eigen::Index f = 0; f < layer.wall_facets.rows(); ++f) {
+      if (retaining.part >= 0 && layer.wall_facet_part[f] != retaining.part) continue;
+      for (Eigen::Index k = 0; k < layer.wall_facets.cols(); ++k) {
+        centre.head(layer.nodes.cols()) += layer.nodes.row(layer.wall_facets(f, k)).transpose();
+        count += 1.0;
       }
     }
     if (count > 0.0) centre /= count;
@@ -212,8 +205,8 @@ nlohmann::json flow_summary(const Scene& scene, const ParticleFrame& first,
     for (std::size_t p = 0; p < last.count; ++p) {
       ((frame_point(last, p) - centre).dot(facing) > 0.0 ? retained : passed) += last.volume[p];
     }
-    out["retaining_walls"][name] = {{"volume_on_source_side", retained},
-                                    {"volume_past_wall", passed}};
+    out["retaining_walls"][retaining.name] = {{"volume_on_source_side", retained},
+                                              {"volume_past_wall", passed}};
   }
   return out;
 }
@@ -361,9 +354,9 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   };
   if (failure) summary["error"] = *failure;
   const std::vector<std::string> walls = sim->wall_names();
-  for (std::size_t i = 0; i < walls.size() && i < peaks.peak.size(); ++i) {
-    const Eigen::Vector3d& f = peaks.vector[i];
-    summary["walls"][walls[i]] = {{"peak_force", peaks.peak[i]},
+  for (std::size_t i = 0; i < walls.size() && i < peaks.force.size(); ++i) {
+    const Eigen::Vector3d& f = peaks.force[i];
+    summary["walls"][walls[i]] = {{"peak_force", f.norm()},
                                   {"peak_force_time", peaks.time[i]},
                                   {"peak_force_vector", {f.x(), f.y(), f.z()}}};
   }

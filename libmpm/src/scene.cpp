@@ -194,6 +194,16 @@ std::filesystem::path scene_relative(const Scene& scene, const std::string& file
   return scene.file.parent_path() / path;
 }
 
+/// Where a mesh goes: "scale", "translate", "rotate" (degrees about x, y, z), for mesh walls and
+/// mesh bodies alike.
+mpmgeom::ImportOptions read_placement(Reader& r) {
+  mpmgeom::ImportOptions import;
+  import.scale = r.positive("scale", 1.0);
+  import.translation = r.vector("translate", 3, Eigen::VectorXd::Zero(3)).head<3>();
+  import.rotation_deg = r.vector("rotate", 3, Eigen::VectorXd::Zero(3)).head<3>();
+  return import;
+}
+
 Material read_material(Reader& r, int dim) {
   const std::string model = r.choice(
       "model", {"linear_elastic", "neo_hookean", "drucker_prager", "newtonian_fluid", "bingham"});
@@ -334,10 +344,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
     // A closed surface (a source volume from CAD or a terrain tool) filled on the grid's
     // sub-cell lattice.
     body.shape = BodySpec::Shape::mesh;
-    mpmgeom::ImportOptions import;
-    import.scale = shape.positive("scale", 1.0);
-    import.translation = shape.vector("translate", 3, Eigen::VectorXd::Zero(3)).head<3>();
-    import.rotation_deg = shape.vector("rotate", 3, Eigen::VectorXd::Zero(3)).head<3>();
+    const mpmgeom::ImportOptions import = read_placement(shape);
     const std::filesystem::path file = scene_relative(scene, shape.string("file"));
     try {
       mpmgeom::RepairOptions repair;
@@ -505,10 +512,7 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
       } else {
         PrepOptions prep;
         prep.layer = layer;
-        prep.import.scale = surface.positive("scale", 1.0);
-        prep.import.translation =
-            surface.vector("translate", 3, Eigen::VectorXd::Zero(3)).head<3>();
-        prep.import.rotation_deg = surface.vector("rotate", 3, Eigen::VectorXd::Zero(3)).head<3>();
+        prep.import = read_placement(surface);
         prep.remesh = surface.boolean("remesh", true);
         prep.repair.require_closed = surface.boolean("closed", false);
         const std::filesystem::path mesh_file = scene_relative(scene, surface.string("file"));
@@ -516,13 +520,12 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
         // grid (its digest), else rebuilt here and written there for the next run.
         std::filesystem::path cache;
         if (surface.has("cache")) cache = scene_relative(scene, surface.string("cache"));
-        const std::string digest = boundary_digest(mesh_file, prep, grid);
         bool reused = false;
         std::error_code ec;
         if (!cache.empty() && std::filesystem::is_regular_file(cache, ec)) {
           try {
             BoundaryPackage cached = load_boundary_package(cache);
-            if (cached.source_digest == digest) {
+            if (cached.source_digest == boundary_digest(mesh_file, prep, grid)) {
               *package = std::move(cached);
               reused = true;
             }
@@ -691,8 +694,8 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
       scene.fixed_dt = time.positive("dt");
       // Explicit MPM is stable for dt <= h / c (CFL number 1) at best, and for viscous
       // materials dt <= rho h^2 / (2 D mu).
-      const double limit = std::min(scene.spacing / max_wave_speed(scene),
-                                    viscous_dt_limit(scene, scene.spacing) / scene.cfl);
+      const double limit =
+          std::min(scene.spacing / max_wave_speed(scene), viscous_dt_limit(scene, scene.spacing));
       if (*scene.fixed_dt > limit) {
         time.fail_at(time.child("dt"),
                      "time step " + Reader::fmt(*scene.fixed_dt) +
@@ -718,21 +721,24 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
       }
       for (std::size_t i = 0; i < names.size(); ++i) {
         // A dual-grid wall, or one part of it as the force history names it (wall_part).
-        const auto matches = [&](const DualWallSpec& w) {
-          if (!names[i].is_string()) return false;
+        std::optional<Scene::RetainingWall> found;
+        for (std::size_t w = 0; w < scene.dual_walls.size() && names[i].is_string(); ++w) {
+          const DualWallSpec& spec = scene.dual_walls[w];
           const std::string name = names[i].get<std::string>();
-          if (w.name == name) return true;
-          for (const auto& part : w.package->layer.part_names) {
-            if (w.name + "_" + part == name) return true;
+          const auto& parts = spec.package->layer.part_names;
+          if (spec.name == name) found = Scene::RetainingWall{name, static_cast<int>(w), -1};
+          for (std::size_t k = 0; k < parts.size(); ++k) {
+            if (spec.name + "_" + parts[k] == name) {
+              found = Scene::RetainingWall{name, static_cast<int>(w), static_cast<int>(k)};
+            }
           }
-          return false;
-        };
-        if (!std::any_of(scene.dual_walls.begin(), scene.dual_walls.end(), matches)) {
+        }
+        if (!found) {
           output.fail_at(output.child("retaining_walls") + "/" + std::to_string(i),
                          "expected the name of a dual-grid wall in /walls (or wall_part), got " +
                              describe(names[i]));
         }
-        scene.retaining_walls.push_back(names[i].get<std::string>());
+        scene.retaining_walls.push_back(*found);
       }
     }
     output.finish();
@@ -785,8 +791,7 @@ double viscous_dt_limit(const Scene& scene, double size) {
   for (const auto& m : scene.materials) {
     const double mu = max_viscosity(m.model);
     if (mu > 0.0) {
-      limit = std::min(limit,
-                       scene.cfl * density(m.model) * size * size / (2.0 * scene.dimension * mu));
+      limit = std::min(limit, density(m.model) * size * size / (2.0 * scene.dimension * mu));
     }
   }
   return limit;

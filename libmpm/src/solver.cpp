@@ -85,6 +85,16 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
   }
   wall_impulse_.assign(scene.walls.size(), Eigen::Vector3d::Zero());
   setup_dual_walls();
+  // What stable_dt() needs of the scene is fixed once the walls are set up. Boundary-grid cells
+  // may be smaller than the standard grid's. With APIC their linear basis takes C_p = grad v at
+  // full weight from nodes the particle barely reaches; the incline and free-flight tests
+  // (test_blending) show that stays stable only at about half the CFL number of the cell, so
+  // the layer's cell size counts half there.
+  const double layer_factor = scene.transfer == Transfer::apic ? 0.5 : 1.0;
+  step_size_ = grid.h;
+  for (const auto& w : dual_) step_size_ = std::min(step_size_, layer_factor * w.min_cell_size);
+  wave_speed_ = max_wave_speed(scene);
+  viscous_dt_ = viscous_dt_limit(scene, step_size_);
   for (std::size_t p = 0; p < particles.size(); ++p) {
     max_speed_ = std::max(max_speed_, particles.velocity[p].norm());
   }
@@ -198,15 +208,7 @@ void Solver<D>::fill_bodies() {
 
 template <int D>
 double Solver<D>::stable_dt(double cfl) const {
-  // Boundary-grid cells may be smaller than the standard grid's. With APIC their linear basis
-  // takes C_p = grad v at full weight from nodes the particle barely reaches; the incline and
-  // free-flight tests (test_blending) show that stays stable only at about half the CFL number
-  // of the cell, so the layer's cell size counts half there.
-  const double layer_factor = scene_.transfer == Transfer::apic ? 0.5 : 1.0;
-  double size = grid.h;
-  for (const auto& w : dual_) size = std::min(size, layer_factor * w.min_cell_size);
-  const double dt = cfl * size / (max_wave_speed(scene_) + max_speed_);
-  return std::min(dt, viscous_dt_limit(scene_, size));
+  return cfl * std::min(step_size_ / (wave_speed_ + max_speed_), viscous_dt_);
 }
 
 template <int D>

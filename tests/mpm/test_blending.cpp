@@ -119,6 +119,26 @@ std::pair<Eigen::VectorXd, Eigen::VectorXd> grid_box(const std::vector<Eigen::Ve
   return {lo, hi};
 }
 
+/// A straight 2D wall through (0.013, 0.027) falling at theta below the x axis: its downhill
+/// unit vector, its normal into the material, and the grid box (margin 4 cells of h) around the
+/// strip from u0 to u1 along it and `depth` above it.
+struct Slope2D {
+  Eigen::Vector2d origin{0.013, 0.027}, along, normal;
+  Eigen::VectorXd lo, hi;
+};
+
+Slope2D slope_2d(double theta, double u0, double u1, double depth, double h) {
+  Slope2D s;
+  s.along = Eigen::Vector2d(std::cos(theta), -std::sin(theta));
+  s.normal = Eigen::Vector2d(std::sin(theta), std::cos(theta));
+  std::tie(s.lo, s.hi) =
+      grid_box({Eigen::VectorXd(s.origin + u0 * s.along), Eigen::VectorXd(s.origin + u1 * s.along),
+                Eigen::VectorXd(s.origin + u0 * s.along + depth * s.normal),
+                Eigen::VectorXd(s.origin + u1 * s.along + depth * s.normal)},
+               h, 4);
+  return s;
+}
+
 // ---------------------------------------------------------------------------------------------
 // 1D: steel bar (E = 200 GPa, rho = 7850, L = 1, v0 = 1) against a rigid wall. Exact: wall
 // stress rho c v0 for 2L/c, then the bar leaves at +v0.
@@ -415,16 +435,11 @@ struct FreeFlight2D {
 
 FreeFlight2D free_flight_2d(const std::string& method, const std::string& transfer) {
   const double h = 0.05, theta_deg = 30.0, theta = theta_deg * std::numbers::pi / 180.0;
-  const Eigen::Vector2d origin(0.013, 0.027), along(std::cos(theta), -std::sin(theta)),
-      normal(std::sin(theta), std::cos(theta));
+  const Slope2D slope = slope_2d(theta, -0.5, 0.8, 0.6, h);
+  const auto& [origin, along, normal, lo, hi] = slope;
   const double a = 0.3, b = 0.2;
   const Eigen::Vector2d centre = origin + (1.2 * h + 0.5 * b) * normal;
   const Eigen::Vector2d velocity = 0.2 * normal + 0.4 * along;
-  auto [lo, hi] =
-      grid_box({Eigen::VectorXd(origin - 0.5 * along), Eigen::VectorXd(origin + 0.8 * along),
-                Eigen::VectorXd(origin - 0.5 * along + 0.6 * normal),
-                Eigen::VectorXd(origin + 0.8 * along + 0.6 * normal)},
-               h, 4);
   json wall = contact_json(0.0);
   wall["name"] = "wall";
   wall["surface"] = {{"type", "polyline"}, {"points", polyline_json(origin, along, -0.5, 0.8, h)}};
@@ -534,15 +549,10 @@ class LoneParticle : public ::testing::TestWithParam<const char*> {};
 
 TEST_P(LoneParticle, StiffParticleAgainstWallNeverGainsEnergy) {
   const double h = 0.05, theta = 37.0 * std::numbers::pi / 180.0;
-  const Eigen::Vector2d origin(0.013, 0.027), along(std::cos(theta), -std::sin(theta)),
-      normal(std::sin(theta), std::cos(theta));
+  const Slope2D slope = slope_2d(theta, -0.2, 1.2, 0.5, h);
+  const auto& [origin, along, normal, lo, hi] = slope;
   const Eigen::Vector2d centre = origin + 0.5 * along + 2.0 * h * normal;
   const Eigen::Vector2d velocity = -1.0 * normal + 1.0 * along;
-  auto [lo, hi] =
-      grid_box({Eigen::VectorXd(origin - 0.2 * along), Eigen::VectorXd(origin + 1.2 * along),
-                Eigen::VectorXd(origin - 0.2 * along + 0.5 * normal),
-                Eigen::VectorXd(origin + 1.2 * along + 0.5 * normal)},
-               h, 4);
   json wall = contact_json(0.0);
   wall["name"] = "wall";
   wall["surface"] = {{"type", "polyline"}, {"points", polyline_json(origin, along, -0.2, 1.2, h)}};
@@ -676,14 +686,10 @@ struct InclineScene {
 InclineScene incline_2d(double theta_deg, double mu, double segment, double cfl,
                         const std::string& method, bool remesh = true) {
   const double theta = theta_deg * std::numbers::pi / 180.0;
-  const Eigen::Vector2d origin(0.013, 0.027), s(std::cos(theta), -std::sin(theta)),
-      n(std::sin(theta), std::cos(theta));
   const double a = 0.3, b = 0.15, u0 = -0.4, u1 = 0.8;
+  const Slope2D slope = slope_2d(theta, u0, u1, 0.5, kInclineH);
+  const auto& [origin, s, n, lo, hi] = slope;
   const Eigen::Vector2d centre = origin + (0.5 * b + 1e-6) * n;
-  auto [lo, hi] = grid_box(
-      {Eigen::VectorXd(origin + u0 * s), Eigen::VectorXd(origin + u1 * s),
-       Eigen::VectorXd(origin + u0 * s + 0.5 * n), Eigen::VectorXd(origin + u1 * s + 0.5 * n)},
-      kInclineH, 4);
   json body = {{"name", "block"},
                {"material", "m"},
                {"shape",

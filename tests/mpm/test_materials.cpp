@@ -33,9 +33,7 @@ struct PlaneStress3 {
 };
 
 PlaneStress3 invariants(const Mat<2>& sigma, double szz) {
-  Eigen::Matrix3d s = Eigen::Matrix3d::Zero();
-  s.topLeftCorner<2, 2>() = sigma;
-  s(2, 2) = szz;
+  const Eigen::Matrix3d s = stress_3d<2>(sigma, szz);
   const double I1 = s.trace();
   const Eigen::Matrix3d dev = s - I1 / 3.0 * Eigen::Matrix3d::Identity();
   return {I1, std::sqrt(0.5 * (dev.array() * dev.array()).sum())};

@@ -169,6 +169,16 @@ void update_stress(const NeoHookean& m, const Mat<D>& L, double dt, Mat<D>& F, M
   }
 }
 
+/// The full 3D stress of a D-dimensional one whose out-of-plane normal stresses are stress_zz
+/// (plane strain: the zz entry).
+template <int D>
+Eigen::Matrix3d stress_3d(const Mat<D>& sigma, double stress_zz) {
+  Eigen::Matrix3d s3 = Eigen::Matrix3d::Zero();
+  s3.topLeftCorner<D, D>() = sigma;
+  for (int d = D; d < 3; ++d) s3(d, d) = stress_zz;
+  return s3;
+}
+
 /// Drucker-Prager: Jaumann-rotate sigma with the spin of L, add the elastic trial increment and
 /// return to the cone, its apex or the tension cut-off. For linear elasticity and a linear
 /// potential the single-step return is exact (no iteration): on the cone
@@ -183,10 +193,9 @@ void update_stress(const DruckerPrager& m, const Mat<D>& L, double dt, Mat<D>& F
   const double G = l.mu, K = l.lambda + 2.0 / 3.0 * l.mu;
   const Mat<D> Dv = 0.5 * (L + L.transpose());
   const Mat<D> W = 0.5 * (L - L.transpose());
-  Eigen::Matrix3d s3 = Eigen::Matrix3d::Zero(), d3 = Eigen::Matrix3d::Zero();
-  s3.topLeftCorner<D, D>() = sigma + dt * (W * sigma - sigma * W);
+  Eigen::Matrix3d s3 = stress_3d<D>(sigma + dt * (W * sigma - sigma * W), state.stress_zz);
+  Eigen::Matrix3d d3 = Eigen::Matrix3d::Zero();
   d3.topLeftCorner<D, D>() = dt * Dv;
-  for (int d = D; d < 3; ++d) s3(d, d) = state.stress_zz;
   // Elastic trial.
   s3 += l.lambda * d3.trace() * Eigen::Matrix3d::Identity() + 2.0 * l.mu * d3;
   const double I1 = s3.trace();
@@ -219,10 +228,16 @@ void update_stress(const DruckerPrager& m, const Mat<D>& L, double dt, Mat<D>& F
   if constexpr (D < 3) state.stress_zz = out(2, 2);
 }
 
+/// Tait modulus B = rho c0^2 / gamma of a fluid.
+template <Fluid M>
+double tait_modulus(const M& m) {
+  return m.density * m.speed_of_sound * m.speed_of_sound / m.gamma;
+}
+
 /// Tait pressure (no tension) from J = V / V0.
-inline double tait_pressure(double density, double speed_of_sound, double gamma, double J) {
-  const double B = density * speed_of_sound * speed_of_sound / gamma;
-  return std::max(0.0, B * (std::pow(J, -gamma) - 1.0));
+template <Fluid M>
+double tait_pressure(const M& m, double J) {
+  return std::max(0.0, tait_modulus(m) * (std::pow(J, -m.gamma) - 1.0));
 }
 
 /// Newtonian fluid and Bingham: sigma = -p(J) I + 2 mu_app dev(D), D = sym(L) at the step.
@@ -247,8 +262,7 @@ void update_stress(const M& m, const Mat<D>& L, double dt, Mat<D>& F, Mat<D>& si
                                   : m.regularization;
     mu = m.plastic_viscosity + m.yield_stress * yield_part;
   }
-  sigma =
-      -tait_pressure(m.density, m.speed_of_sound, m.gamma, J) * Mat<D>::Identity() + 2.0 * mu * dev;
+  sigma = -tait_pressure(m, J) * Mat<D>::Identity() + 2.0 * mu * dev;
 }
 
 /// The models without extra state take the same call.
@@ -296,9 +310,7 @@ double strain_energy(const NeoHookean& m, const Mat<D>& F, const Mat<D>& /*sigma
 template <int D>
 double strain_energy(const DruckerPrager& m, const Mat<D>& F, const Mat<D>& sigma, double volume0,
                      double stress_zz) {
-  Eigen::Matrix3d s3 = Eigen::Matrix3d::Zero();
-  s3.topLeftCorner<D, D>() = sigma;
-  for (int d = D; d < 3; ++d) s3(d, d) = stress_zz;
+  const Eigen::Matrix3d s3 = stress_3d<D>(sigma, stress_zz);
   const Lame l = lame(m.youngs_modulus, m.poisson_ratio);
   const double K = l.lambda + 2.0 / 3.0 * l.mu;
   const double I1 = s3.trace();
@@ -312,8 +324,8 @@ template <int D, Fluid M>
 double strain_energy(const M& m, const Mat<D>& F, const Mat<D>& /*sigma*/, double volume0,
                      double /*stress_zz*/) {
   const double J = std::min(F.determinant(), 1.0);
-  const double B = m.density * m.speed_of_sound * m.speed_of_sound / m.gamma;
-  return B * volume0 * ((std::pow(J, 1.0 - m.gamma) - 1.0) / (m.gamma - 1.0) + (J - 1.0));
+  return tait_modulus(m) * volume0 *
+         ((std::pow(J, 1.0 - m.gamma) - 1.0) / (m.gamma - 1.0) + (J - 1.0));
 }
 
 template <int D, class M>

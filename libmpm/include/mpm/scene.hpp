@@ -113,9 +113,14 @@ struct Scene {
   std::optional<double> fixed_dt;  ///< set: fixed step; unset: adaptive from the CFL number
   double output_interval = 0.0;
   double history_interval = 0.0;  ///< 0: every step
-  /// Dual-grid walls (by name) whose retained volume summary.json reports: the particle volume
+  /// Dual-grid walls (or parts) whose retained volume summary.json reports: the particle volume
   /// on the source side of the vertical plane through the wall's centre that faces the source.
-  std::vector<std::string> retaining_walls;
+  struct RetainingWall {
+    std::string name;  ///< as the scene gives it: "wall" or "wall_part"
+    int wall = 0;      ///< index into dual_walls
+    int part = -1;     ///< the part of the layer, -1: the whole wall
+  };
+  std::vector<RetainingWall> retaining_walls;
   std::vector<MaterialSpec> materials;
   std::vector<BodySpec> bodies;
   std::vector<BoxWall> walls;
@@ -127,8 +132,8 @@ Scene load_scene(const std::filesystem::path& file);
 /// Same for an in-memory document; `origin` names it in messages.
 Scene parse_scene(const nlohmann::json& doc, const std::filesystem::path& origin);
 
-/// Explicit viscous step limit cfl * rho size^2 / (2 D mu_max) over the scene's materials
-/// (infinite when none is viscous).
+/// Explicit viscous step limit rho size^2 / (2 D mu_max) over the scene's materials (CFL number
+/// 1; infinite when none is viscous).
 double viscous_dt_limit(const Scene& scene, double size);
 
 /// Largest wave speed over the scene's materials at the reference state.

@@ -157,6 +157,9 @@ class Solver final : public Simulation {
   double mass_threshold_ = 0.0;
   double coupling_threshold_ = 0.0;  ///< absolute, from scene.coupling_mass_threshold
   double max_speed_ = 0.0;
+  double step_size_ = 0.0;   ///< smallest cell the CFL condition sees (layer cells count half)
+  double wave_speed_ = 0.0;  ///< max_wave_speed(scene)
+  double viscous_dt_ = 0.0;  ///< viscous_dt_limit at step_size_ (CFL number 1)
   std::optional<std::string> fault_;
 };
 
