@@ -176,20 +176,53 @@ void Solver<D>::layer_scatter(bool with_force) {
     const Vec<D> v = P.velocity[p];
     // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
     // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md).
-    // The MUSL remap (with_force false) leaves C_p out as well: C_p^{n+1} is the gradient of
-    // the remapped field, and remapping with the old C_p would hand each particle its own
-    // C_p back, so a particle alone in a boundary cell would keep straining at a fixed rate
-    // that its stress never corrects (docs/verification.md, particle against a wall).
-    const Mat<D> C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
+    // The MUSL remap (with_force false) carries only the spin, the skew part of C_p: remapping
+    // with the whole C_p would hand each particle its own strain rate back, so a particle alone
+    // in a boundary cell would keep straining at a rate its stress never corrects
+    // (docs/verification.md, particle against a wall), while leaving C_p out altogether drops
+    // the rotation of the material from the strain rate of the layer (a disk rolling on the
+    // wall lost a third of its angular momentum, docs/verification.md, rolling cylinder). A
+    // spin only rotates F and the stress. Cells much longer than h (a coarse polyline kept with
+    // "remesh": false) leave it out: there the wall constraint, acting a cell length from the
+    // particle, fed the spin back and the block on a one-cell incline blew up.
+    double edge = 0.0, diameter = 0.0;  // longest Gamma edge and longest edge of the cell
+    for (int a = 0; a < st.count; ++a) {
+      for (int b = a + 1; b < st.count; ++b) {
+        const double length = (w.position[st.node[a]] - w.position[st.node[b]]).norm();
+        diameter = std::max(diameter, length);
+        if (w.wall_index_of_node[st.node[a]] >= 0 && w.wall_index_of_node[st.node[b]] >= 0) {
+          edge = std::max(edge, length);
+        }
+      }
+    }
+    Mat<D> C = Mat<D>::Zero();
+    if (apic && !w.enhanced) {
+      if (with_force) {
+        C = P.affine[p];
+      } else if (diameter <= 2.0 * grid.h) {
+        C = 0.5 * (P.affine[p] - P.affine[p].transpose());
+      }
+    }
     const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
     const Mat<D> vs = -volume * P.stress[p];
     const Vec<D> mb = m * body_acceleration_[P.body[p]];
-    // Separable walls: the particle's half-size (current volume as a cube), widened by the
-    // touch tolerance, for the touch test of layer_walls() and enhanced_assemble().
+    // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma node is
+    // in contact where a particle lying over it touches the wall: the particle's near edge
+    // (half its current size as a cube, widened by the touch tolerance) reaches the wall, and
+    // the particle lies within the node's share of the wall facet (half the facet's longest
+    // edge in 2D, 1/sqrt(3) of it in 3D: every point of a facet is that close to one of its
+    // corners) plus its own half-size. Testing every particle in the node's support instead
+    // switched on nodes a cell ahead of where a rolling disk touches, whose approach the
+    // rigid rotation extrapolates, and the disk was braked (docs/verification.md). On facets
+    // longer than h the window grows by the excess: their nodes interpolate over the whole
+    // facet, so contact anywhere on it engages all of them.
     const bool touch = with_force && w.spec->contact.separable;
-    const double reach =
-        touch ? (1.0 + w.spec->contact.touch_tolerance) * 0.5 * std::pow(std::abs(volume), 1.0 / D)
-              : 0.0;
+    double half = 0.0, reach = 0.0, window = 0.0;
+    if (touch) {
+      half = 0.5 * std::pow(std::abs(volume), 1.0 / D);
+      reach = (1.0 + w.spec->contact.touch_tolerance) * half;
+      window = (D == 3 ? 1.0 / std::sqrt(3.0) : 0.5) * edge + half + std::max(0.0, edge - grid.h);
+    }
     for (int k = 0; k < st.count; ++k) {
       const int node = st.node[k];
       const double N = st.N[k];
@@ -199,8 +232,11 @@ void Solver<D>::layer_scatter(bool with_force) {
         w.force[node] += vs * st.dN[k] + N * mb;
         const int i = w.wall_index_of_node[node];
         if (touch && i >= 0) {
-          const double gap = (P.position[p] - w.position[node]).dot(w.wall_normal[i]) - reach;
-          w.touch_gap[node] = std::min(w.touch_gap[node], gap);
+          const Vec<D> d = P.position[p] - w.position[node];
+          const double normal = d.dot(w.wall_normal[i]);
+          if ((d - normal * w.wall_normal[i]).norm() <= window) {
+            w.touch_gap[node] = std::min(w.touch_gap[node], normal - reach);
+          }
         }
       }
     }
