@@ -176,31 +176,20 @@ void Solver<D>::layer_scatter(bool with_force) {
     const Vec<D> v = P.velocity[p];
     // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
     // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md).
-    // The MUSL remap (with_force false) carries only the spin, the skew part of C_p: remapping
-    // with the whole C_p would hand each particle its own strain rate back, so a particle alone
-    // in a boundary cell would keep straining at a rate its stress never corrects
-    // (docs/verification.md, particle against a wall), while leaving C_p out altogether drops
-    // the rotation of the material from the strain rate of the layer (a disk rolling on the
-    // wall lost a third of its angular momentum, docs/verification.md, rolling cylinder). A
-    // spin only rotates F and the stress. Cells much longer than h (a coarse polyline kept with
-    // "remesh": false) leave it out: there the wall constraint, acting a cell length from the
-    // particle, fed the spin back and the block on a one-cell incline blew up.
-    double edge = 0.0, diameter = 0.0;  // longest Gamma edge and longest edge of the cell
+    // The MUSL remap (with_force false) leaves C_p out as well: C_p^{n+1} is the gradient of
+    // the remapped field, and remapping with the old C_p would hand each particle its own C_p
+    // back, so a particle alone in a boundary cell would keep straining at a fixed rate that its
+    // stress never corrects (docs/verification.md, particle against a wall). Remapping only its
+    // spin (the skew part) mended the rolling disk but fed back through the wall constraint:
+    // a block on a one-cell incline blew up, and the debris scene threw a particle out at
+    // 27 m/s (docs/verification.md, rolling cylinder).
+    const Mat<D> C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
+    double edge = 0.0;  // the longest edge of the particle's wall facet
     for (int a = 0; a < st.count; ++a) {
+      if (w.wall_index_of_node[st.node[a]] < 0) continue;
       for (int b = a + 1; b < st.count; ++b) {
-        const double length = (w.position[st.node[a]] - w.position[st.node[b]]).norm();
-        diameter = std::max(diameter, length);
-        if (w.wall_index_of_node[st.node[a]] >= 0 && w.wall_index_of_node[st.node[b]] >= 0) {
-          edge = std::max(edge, length);
-        }
-      }
-    }
-    Mat<D> C = Mat<D>::Zero();
-    if (apic && !w.enhanced) {
-      if (with_force) {
-        C = P.affine[p];
-      } else if (diameter <= 2.0 * grid.h) {
-        C = 0.5 * (P.affine[p] - P.affine[p].transpose());
+        if (w.wall_index_of_node[st.node[b]] < 0) continue;
+        edge = std::max(edge, (w.position[st.node[a]] - w.position[st.node[b]]).norm());
       }
     }
     const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
