@@ -465,7 +465,7 @@ std::vector<Check> rolling_cylinder_2d(const json& p, const std::string& method,
     const Eigen::Vector2d c = f.origin + 0.4 * f.down + (R + 1e-6) * f.normal;
     json body = {{"material", "m"},
                  {"shape", {{"type", "disk"}, {"center", vec({c.x(), c.y()})}, {"radius", R}}},
-                 {"particles_per_cell", 2}};
+                 {"particles_per_cell", static_cast<int>(param(p, "particles_per_cell"))}};
     const json doc = incline_doc_2d(f, theta, method, h, 0.0, 2.0, body, mu, T,
                                     {{"update", "musl"}, {"transfer", "apic"}});
     double travel = 0.0;

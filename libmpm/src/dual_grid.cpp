@@ -177,19 +177,41 @@ void Solver<D>::layer_scatter(bool with_force) {
     // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
     // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md).
     // The MUSL remap (with_force false) leaves C_p out as well: C_p^{n+1} is the gradient of
-    // the remapped field, and remapping with the old C_p would hand each particle its own
-    // C_p back, so a particle alone in a boundary cell would keep straining at a fixed rate
-    // that its stress never corrects (docs/verification.md, particle against a wall).
+    // the remapped field, and remapping with the old C_p would hand each particle its own C_p
+    // back, so a particle alone in a boundary cell would keep straining at a fixed rate that its
+    // stress never corrects (docs/verification.md, particle against a wall). Remapping only its
+    // spin (the skew part) mended the rolling disk but fed back through the wall constraint:
+    // a block on a one-cell incline blew up, and the debris scene threw a particle out at
+    // 27 m/s (docs/verification.md, rolling cylinder).
     const Mat<D> C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
+    double edge = 0.0;  // the longest edge of the particle's wall facet
+    for (int a = 0; a < st.count; ++a) {
+      if (w.wall_index_of_node[st.node[a]] < 0) continue;
+      for (int b = a + 1; b < st.count; ++b) {
+        if (w.wall_index_of_node[st.node[b]] < 0) continue;
+        edge = std::max(edge, (w.position[st.node[a]] - w.position[st.node[b]]).norm());
+      }
+    }
     const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
     const Mat<D> vs = -volume * P.stress[p];
     const Vec<D> mb = m * body_acceleration_[P.body[p]];
-    // Separable walls: the particle's half-size (current volume as a cube), widened by the
-    // touch tolerance, for the touch test of layer_walls() and enhanced_assemble().
+    // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma node is
+    // in contact where a particle lying over it touches the wall: the particle's near edge
+    // (half its initial size as a cube, widened by the touch tolerance) reaches the wall, and
+    // the particle lies within the node's share of the wall facet (half the facet's longest
+    // edge in 2D, 1/sqrt(3) of it in 3D: every point of a facet is that close to one of its
+    // corners) plus its own half-size. Testing every particle in the node's support instead
+    // switched on nodes a cell ahead of where a rolling disk touches, whose approach the
+    // rigid rotation extrapolates, and the disk was braked (docs/verification.md). On facets
+    // longer than h the window grows by the excess: their nodes interpolate over the whole
+    // facet, so contact anywhere on it engages all of them.
     const bool touch = with_force && w.spec->contact.separable;
-    const double reach =
-        touch ? (1.0 + w.spec->contact.touch_tolerance) * 0.5 * std::pow(std::abs(volume), 1.0 / D)
-              : 0.0;
+    double half = 0.0, reach = 0.0, window = 0.0;
+    if (touch) {
+      half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
+      reach = (1.0 + w.spec->contact.touch_tolerance) * half;
+      window = (D == 3 ? 1.0 / std::sqrt(3.0) : 0.5) * edge + half + std::max(0.0, edge - grid.h);
+    }
     for (int k = 0; k < st.count; ++k) {
       const int node = st.node[k];
       const double N = st.N[k];
@@ -199,8 +221,11 @@ void Solver<D>::layer_scatter(bool with_force) {
         w.force[node] += vs * st.dN[k] + N * mb;
         const int i = w.wall_index_of_node[node];
         if (touch && i >= 0) {
-          const double gap = (P.position[p] - w.position[node]).dot(w.wall_normal[i]) - reach;
-          w.touch_gap[node] = std::min(w.touch_gap[node], gap);
+          const Vec<D> d = P.position[p] - w.position[node];
+          const double normal = d.dot(w.wall_normal[i]);
+          if ((d - normal * w.wall_normal[i]).norm() <= window) {
+            w.touch_gap[node] = std::min(w.touch_gap[node], normal - reach);
+          }
         }
       }
     }

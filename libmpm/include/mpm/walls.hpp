@@ -25,7 +25,7 @@ struct WallContact {
   /// Separable dual-grid walls: a Gamma node acts only where some particle's edge is within
   /// this many particle half-sizes of the wall along the node's normal (the particle touches
   /// the wall), not wherever the node's support reaches the material.
-  double touch_tolerance = 0.5;
+  double touch_tolerance = 0.01;
 };
 
 /// A wall on one face of the grid box. In 1D only x faces exist, in 2D x and y.
