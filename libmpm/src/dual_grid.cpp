@@ -110,6 +110,29 @@ void Solver<D>::setup_dual_walls() {
       }
     }
     w.min_cell_size = smallest;
+
+    // Each cell's share of its wall facet for the touch test (layer_scatter): half the facet's
+    // longest edge in 2D, 1/sqrt(3) of it in 3D (every point of a facet is that close to one of
+    // its corners). Testing every particle in a node's support instead switched on nodes a cell
+    // ahead of where a rolling disk touches, whose approach the rigid rotation extrapolates, and
+    // the disk was braked (docs/verification.md). On facets longer than h the share grows by
+    // the excess: their nodes interpolate over the whole facet, so contact anywhere on it
+    // engages all of them.
+    w.touch_window.assign(static_cast<std::size_t>(w.layer->cells.rows()), 0.0);
+    for (Eigen::Index cell = 0; cell < w.layer->cells.rows(); ++cell) {
+      double edge = 0.0;  // the longest edge between the cell's Gamma nodes
+      for (Eigen::Index a = 0; a < w.layer->cells.cols(); ++a) {
+        const int na = w.layer->cells(cell, a);
+        if (w.wall_index_of_node[na] < 0) continue;
+        for (Eigen::Index b = a + 1; b < w.layer->cells.cols(); ++b) {
+          const int nb = w.layer->cells(cell, b);
+          if (w.wall_index_of_node[nb] < 0) continue;
+          edge = std::max(edge, (w.position[na] - w.position[nb]).norm());
+        }
+      }
+      w.touch_window[static_cast<std::size_t>(cell)] =
+          (D == 3 ? 1.0 / std::sqrt(3.0) : 0.5) * edge + std::max(0.0, edge - grid.h);
+    }
     dual_.push_back(std::move(w));
   }
 }
@@ -184,33 +207,19 @@ void Solver<D>::layer_scatter(bool with_force) {
     // a block on a one-cell incline blew up, and the debris scene threw a particle out at
     // 27 m/s (docs/verification.md, rolling cylinder).
     const Mat<D> C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
-    double edge = 0.0;  // the longest edge of the particle's wall facet
-    for (int a = 0; a < st.count; ++a) {
-      if (w.wall_index_of_node[st.node[a]] < 0) continue;
-      for (int b = a + 1; b < st.count; ++b) {
-        if (w.wall_index_of_node[st.node[b]] < 0) continue;
-        edge = std::max(edge, (w.position[st.node[a]] - w.position[st.node[b]]).norm());
-      }
-    }
     const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
     const Mat<D> vs = -volume * P.stress[p];
     const Vec<D> mb = m * body_acceleration_[P.body[p]];
     // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma node is
-    // in contact where a particle lying over it touches the wall: the particle's near edge
-    // (half its initial size as a cube, widened by the touch tolerance) reaches the wall, and
-    // the particle lies within the node's share of the wall facet (half the facet's longest
-    // edge in 2D, 1/sqrt(3) of it in 3D: every point of a facet is that close to one of its
-    // corners) plus its own half-size. Testing every particle in the node's support instead
-    // switched on nodes a cell ahead of where a rolling disk touches, whose approach the
-    // rigid rotation extrapolates, and the disk was braked (docs/verification.md). On facets
-    // longer than h the window grows by the excess: their nodes interpolate over the whole
-    // facet, so contact anywhere on it engages all of them.
+    // in contact where a particle lying over it (within the node's share of the facet,
+    // DualWall::touch_window, plus the particle's half-size) touches the wall: the particle's
+    // near edge (half its initial size as a cube, widened by the touch tolerance) reaches it.
     const bool touch = with_force && w.spec->contact.separable;
-    double half = 0.0, reach = 0.0, window = 0.0;
+    double reach = 0.0, window = 0.0;
     if (touch) {
-      half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
+      const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
       reach = (1.0 + w.spec->contact.touch_tolerance) * half;
-      window = (D == 3 ? 1.0 / std::sqrt(3.0) : 0.5) * edge + half + std::max(0.0, edge - grid.h);
+      window = w.touch_window[static_cast<std::size_t>(P.layer_cell[p])] + half;
     }
     for (int k = 0; k < st.count; ++k) {
       const int node = st.node[k];

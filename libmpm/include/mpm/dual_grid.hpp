@@ -82,10 +82,14 @@ struct DualWall {
   std::vector<int> wall_index_of_node;  ///< boundary node -> index in wall_nodes, -1 off Gamma
   std::vector<Vec<D>> wall_normal;
   std::vector<int> wall_node_part;
-  /// Per boundary node (Gamma nodes only): min over its layer particles of the distance of the
-  /// particle's near edge from the wall along the node's normal, less the touch tolerance; the
-  /// node is in contact only when it is <= 0 (separable walls). +inf where no particle.
+  /// Per boundary node (Gamma nodes only): min over the layer particles lying over its share of
+  /// the facet of the distance of the particle's near edge from the wall along the node's
+  /// normal, less the touch tolerance; the node is in contact only when it is <= 0 (separable
+  /// walls). +inf where no particle.
   std::vector<double> touch_gap;
+  /// Per layer cell: how far along the wall from a Gamma node of the cell a particle counts as
+  /// lying over that node (the node's share of the facet, before the particle's half-size).
+  std::vector<double> touch_window;
   int impulse_offset = 0;  ///< index of this wall's first part in the solver's wall impulses
 
   // Phi coupling: R^A (standard-grid nodes x multipliers) and R^alpha (boundary nodes x

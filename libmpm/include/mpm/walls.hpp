@@ -22,9 +22,10 @@ struct WallContact {
   /// true: unilateral contact, material moving away from the wall is left free (a block can
   /// bounce off, a bar can rebound). false: the wall holds the material (bonded).
   bool separable = false;
-  /// Separable dual-grid walls: a Gamma node acts only where some particle's edge is within
-  /// this many particle half-sizes of the wall along the node's normal (the particle touches
-  /// the wall), not wherever the node's support reaches the material.
+  /// Separable dual-grid walls: a Gamma node acts only where a particle lying over its share of
+  /// the wall facet has its edge within this many particle half-sizes of the wall along the
+  /// node's normal (the particle touches the wall there), not wherever the node's support
+  /// reaches the material. The default is a guard against round-off.
   double touch_tolerance = 0.01;
 };
 
