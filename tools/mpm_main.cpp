@@ -18,9 +18,16 @@ int main(int argc, char** argv) {
   mpm::RunOptions run_options;
   int threads = 0;
   CLI::App* run = app.add_subcommand("run", "Run a scene (JSON) and write results to OUTDIR");
-  run->add_option("scene", scene_file, "Scene file (JSON)")->required();
-  run->add_option("-o,--output", run_options.out_dir, "Output directory")->required();
-  run->add_flag("--overwrite", run_options.overwrite, "Replace an earlier result in OUTDIR");
+  std::filesystem::path resume_dir;
+  auto* scene_option = run->add_option("scene", scene_file, "Scene file (JSON)");
+  auto* out_option = run->add_option("-o,--output", run_options.out_dir, "Output directory");
+  auto* resume_option = run->add_option(
+      "--resume", resume_dir, "Continue the unfinished run in OUTDIR from its last checkpoint");
+  resume_option->excludes(scene_option)->excludes(out_option);
+  scene_option->needs(out_option);
+  out_option->needs(scene_option);
+  run->add_flag("--overwrite", run_options.overwrite, "Replace an earlier result in OUTDIR")
+      ->excludes(resume_option);
   run->add_flag("-q,--quiet", run_options.quiet, "No progress display");
   run->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
       ->check(CLI::Range(1, 1024));
@@ -106,9 +113,17 @@ int main(int argc, char** argv) {
   if (*verify) return mpm::tools::verify_command(verify_args);
   if (*run) {
     try {
+      if (!resume_dir.empty()) {
+        run_options.out_dir = resume_dir;
+        run_options.resume = true;
+        scene_file = mpm::checkpoint_scene(resume_dir).string();
+      } else if (scene_file.empty()) {
+        std::cerr << "mpm run: give a scene and -o OUTDIR, or --resume OUTDIR\n";
+        return mpm::kExitBadInput;
+      }
       const mpm::Scene scene = mpm::load_scene(scene_file);
       return mpm::run_scene(scene, run_options);
-    } catch (const mpm::SceneError& e) {
+    } catch (const std::runtime_error& e) {  // a SceneError, or no readable checkpoint
       std::cerr << "mpm: " << e.what() << '\n';
       return mpm::kExitBadInput;
     }

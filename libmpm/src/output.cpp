@@ -121,6 +121,16 @@ struct ParticleWriter::Impl {
     grids += "      </Grid>\n";
   }
 
+  // XDMF resolves HDF paths against the xmf's own directory, so keep the two relocatable together.
+  void set_reference() {
+    std::filesystem::path dir = xmf_path.parent_path();
+    if (dir.empty()) dir = ".";
+    std::error_code error;
+    std::filesystem::path ref = std::filesystem::relative(h5_path, dir, error);
+    if (error || ref.empty()) ref = std::filesystem::absolute(h5_path);
+    h5_ref = xml_escape(ref.generic_string());
+  }
+
   // Written aside and renamed over the old index so a reader never sees a half-written file.
   void write_xmf() const {
     std::filesystem::path tmp = xmf_path;
@@ -173,13 +183,48 @@ ParticleWriter::ParticleWriter(const std::filesystem::path& h5_path,
   if (!frames.ok() || H5Fflush(im.file.get(), H5F_SCOPE_GLOBAL) < 0) {
     throw std::runtime_error("cannot write HDF5 file " + quoted(h5_path));
   }
-  // XDMF resolves HDF paths against the xmf's own directory, so keep the two relocatable together.
-  std::filesystem::path dir = xmf_path.parent_path();
-  if (dir.empty()) dir = ".";
-  std::error_code error;
-  std::filesystem::path ref = std::filesystem::relative(h5_path, dir, error);
-  if (error || ref.empty()) ref = std::filesystem::absolute(h5_path);
-  im.h5_ref = xml_escape(ref.generic_string());
+  im.set_reference();
+  im.write_xmf();
+}
+
+ParticleWriter::ParticleWriter(const std::filesystem::path& h5_path,
+                               const std::filesystem::path& xmf_path, std::size_t keep_frames)
+    : impl_(std::make_unique<Impl>(h5_path, xmf_path)) {
+  silence_hdf5();
+  Impl& im = *impl_;
+  im.file = Handle(H5Fopen(h5_path.c_str(), H5F_ACC_RDWR, H5P_DEFAULT), H5Fclose);
+  if (!im.file.ok()) throw std::runtime_error("cannot open HDF5 file " + quoted(h5_path));
+  const std::vector<std::string> names = frame_names(im.file.get(), h5_path);
+  if (names.size() < keep_frames) {
+    throw std::runtime_error("HDF5 file " + quoted(h5_path) + " holds " +
+                             std::to_string(names.size()) + " frames, the checkpoint " +
+                             std::to_string(keep_frames));
+  }
+  for (std::size_t i = keep_frames; i < names.size(); ++i) {
+    if (H5Ldelete(im.file.get(), ("/frames/" + names[i]).c_str(), H5P_DEFAULT) < 0) {
+      throw std::runtime_error("cannot write HDF5 file " + quoted(h5_path));
+    }
+  }
+  im.set_reference();
+  for (std::size_t i = 0; i < keep_frames; ++i) {
+    // The index needs each frame's time and particle count only.
+    const Handle g(H5Gopen2(im.file.get(), ("/frames/" + names[i]).c_str(), H5P_DEFAULT), H5Gclose);
+    ParticleFrame header;
+    const Handle set(g.ok() ? H5Dopen2(g.get(), "mass", H5P_DEFAULT) : H5I_INVALID_HID, H5Dclose);
+    const Handle space(set.ok() ? H5Dget_space(set.get()) : H5I_INVALID_HID, H5Sclose);
+    hsize_t count = 0;
+    if (!space.ok() || !read_attribute(g.get(), "time", H5T_NATIVE_DOUBLE, header.time) ||
+        H5Sget_simple_extent_dims(space.get(), &count, nullptr) != 1) {
+      throw std::runtime_error("cannot read frame /frames/" + names[i] + " from HDF5 file " +
+                               quoted(h5_path));
+    }
+    header.count = count;
+    im.append_grid(header, names[i]);
+  }
+  im.frames = keep_frames;
+  if (H5Fflush(im.file.get(), H5F_SCOPE_GLOBAL) < 0) {
+    throw std::runtime_error("cannot write HDF5 file " + quoted(h5_path));
+  }
   im.write_xmf();
 }
 

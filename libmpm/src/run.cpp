@@ -15,6 +15,7 @@
 #include <nlohmann/json.hpp>
 
 #include "mpm/boundary_package.hpp"
+#include "mpm/checkpoint.hpp"
 #include "mpm/output.hpp"
 #include "mpm/solver.hpp"
 
@@ -85,10 +86,22 @@ const char* const kAxis[] = {"x", "y", "z"};
 /// are what the material pushes on each wall, averaged over the interval (impulse / time).
 class History {
  public:
-  History(const std::filesystem::path& file, const Scene& scene, const Simulation& sim)
-      : out_(file), dim_(scene.dimension) {
+  /// A new file, or (append_at > 0) an earlier run's file cut back to its first append_at
+  /// bytes, the rows up to its checkpoint.
+  History(const std::filesystem::path& file, const Scene& scene, const Simulation& sim,
+          std::uintmax_t append_at = 0)
+      : file_(file), dim_(scene.dimension) {
+    if (append_at > 0) {
+      std::error_code error;
+      std::filesystem::resize_file(file, append_at, error);
+      if (error) throw std::runtime_error("cannot write '" + file.string() + "'");
+      out_.open(file, std::ios::app);
+    } else {
+      out_.open(file, std::ios::trunc);
+    }
     if (!out_) throw std::runtime_error("cannot write '" + file.string() + "'");
     out_.precision(10);
+    if (append_at > 0) return;
     out_ << "time,step,dt,kinetic,strain,gravity,total";
     for (int d = 0; d < dim_; ++d) out_ << ",momentum_" << kAxis[d];
     for (const auto& wall : sim.wall_names()) {
@@ -115,7 +128,14 @@ class History {
     return forces;
   }
 
+  /// Bytes written so far (all flushed): where a resumed run cuts the file back to.
+  std::uintmax_t bytes() {
+    out_.flush();
+    return std::filesystem::file_size(file_);
+  }
+
  private:
+  std::filesystem::path file_;
   std::ofstream out_;
   int dim_;
 };
@@ -211,6 +231,16 @@ nlohmann::json flow_summary(const Scene& scene, const ParticleFrame& first,
   return out;
 }
 
+/// Identifies the scene a checkpoint belongs to: a hash of the scene file's text.
+std::string scene_digest(const Scene& scene) {
+  std::ifstream in(scene.file, std::ios::binary);
+  std::ostringstream text;
+  text << in.rdbuf();
+  std::ostringstream hex;
+  hex << std::hex << std::hash<std::string>{}(text.str());
+  return hex.str();
+}
+
 nlohmann::json energy_json(const Energies& e) {
   return {
       {"kinetic", e.kinetic}, {"strain", e.strain}, {"gravity", e.gravity}, {"total", e.total()}};
@@ -218,14 +248,37 @@ nlohmann::json energy_json(const Energies& e) {
 
 }  // namespace
 
+std::filesystem::path checkpoint_scene(const std::filesystem::path& out_dir) {
+  return read_checkpoint(out_dir / "checkpoint.h5").text("run.scene");
+}
+
 int run_scene(const Scene& scene, const RunOptions& options) {
   namespace fs = std::filesystem;
   const fs::path& out = options.out_dir;
   std::error_code ec;
-  if (fs::exists(out / "summary.json", ec) || fs::exists(out / "particles.h5", ec)) {
+  Checkpoint resume;
+  if (options.resume) {
+    if (fs::exists(out / "summary.json", ec)) {
+      std::cerr << "mpm: " << out.string()
+                << ": the run there is finished (summary.json); nothing to resume\n";
+      return kExitBadInput;
+    }
+    try {
+      resume = read_checkpoint(out / "checkpoint.h5");
+      if (resume.text("run.scene_digest") != scene_digest(scene)) {
+        std::cerr << "mpm: " << scene.file.string() << ": changed since the checkpoint in "
+                  << out.string() << " was written; run it afresh with --overwrite\n";
+        return kExitBadInput;
+      }
+    } catch (const std::exception& e) {
+      std::cerr << "mpm: " << out.string() << ": " << e.what() << '\n';
+      return kExitBadInput;
+    }
+  } else if (fs::exists(out / "summary.json", ec) || fs::exists(out / "particles.h5", ec)) {
     if (!options.overwrite) {
       std::cerr << "mpm: " << out.string()
-                << ": holds an earlier result; choose another directory or pass --overwrite\n";
+                << ": holds an earlier result; choose another directory, pass --overwrite, or "
+                   "--resume an unfinished run\n";
       return kExitBadInput;
     }
   }
@@ -240,13 +293,26 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   const auto wall_start = Clock::now();
   std::unique_ptr<ParticleWriter> writer;
   std::unique_ptr<History> history;
+  ParticleFrame first;
   try {
-    fs::create_directories(out);
-    writer = std::make_unique<ParticleWriter>(out / "particles.h5", out / "particles.xmf");
-    history = std::make_unique<History>(out / "history.csv", scene, *sim);
+    if (options.resume) {
+      sim->restore_state(resume);
+      first = read_frame(out / "particles.h5", 0);
+      writer = std::make_unique<ParticleWriter>(
+          out / "particles.h5", out / "particles.xmf",
+          static_cast<std::size_t>(resume.integer("run.frames", 1)[0]));
+      history = std::make_unique<History>(
+          out / "history.csv", scene, *sim,
+          static_cast<std::uintmax_t>(resume.integer("run.history_bytes", 1)[0]));
+    } else {
+      fs::create_directories(out);
+      fs::remove(out / "checkpoint.h5", ec);  // an --overwrite run does not resume the old one
+      writer = std::make_unique<ParticleWriter>(out / "particles.h5", out / "particles.xmf");
+      history = std::make_unique<History>(out / "history.csv", scene, *sim);
+    }
   } catch (const std::exception& e) {
     std::cerr << "mpm: " << out.string() << ": " << e.what() << '\n';
-    return kExitIo;
+    return options.resume ? kExitBadInput : kExitIo;
   }
 
   const double end = scene.end_time;
@@ -267,23 +333,64 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   for (const auto& w : warnings) std::cerr << "mpm: warning: " << w << '\n';
   std::optional<std::string> failure;
   Progress progress(end, options.quiet);
-  ParticleFrame first;
   ForcePeaks peaks;
+  double wall_before = 0.0;  // wall-clock seconds of the runs this one continues
+  const std::string digest = scene_digest(scene);
+  // Written with every particle frame, after it: a resumed run drops what came later.
+  const auto checkpoint = [&]() {
+    Checkpoint c;
+    sim->save_state(c);
+    c.texts["run.scene"] = fs::absolute(scene.file).string();
+    c.texts["run.scene_digest"] = digest;
+    c.reals["run.time"] = {t,
+                           since_history,
+                           next_output,
+                           next_history,
+                           min_dt,
+                           max_dt,
+                           wall_before + seconds_since(wall_start)};
+    c.integers["run.step"] = {step};
+    c.integers["run.frames"] = {static_cast<std::int64_t>(writer->frames_written())};
+    c.integers["run.history_bytes"] = {static_cast<std::int64_t>(history->bytes())};
+    std::vector<double> force;
+    for (const auto& f : peaks.force) force.insert(force.end(), f.data(), f.data() + 3);
+    c.reals["run.peak_force"] = force;
+    c.reals["run.peak_time"] = peaks.time;
+    write_checkpoint(out / "checkpoint.h5", c);
+  };
 
   try {
-    first = sim->frame(0.0, 0);
-    writer->write(first);
-    // Each dual-grid wall's layer (cells, Gamma and Phi facets) for ParaView next to the
-    // particles; only the geometry, not the coupling matrices (those are mpm prep's package).
-    for (const DualWallSpec& wall : scene.dual_walls) {
-      BoundaryPackage geometry;
-      geometry.grid = wall.package->grid;
-      geometry.layer = wall.package->layer;
-      geometry.source = wall.package->source;
-      save_boundary_package(geometry, out / ("wall_" + wall.name + ".h5"),
-                            out / ("wall_" + wall.name + ".xmf"));
+    if (options.resume) {
+      const std::vector<double>& clock = resume.real("run.time", 7);
+      t = clock[0];
+      since_history = clock[1];
+      next_output = clock[2];
+      next_history = clock[3];
+      min_dt = clock[4];
+      max_dt = clock[5];
+      wall_before = clock[6];
+      step = static_cast<long>(resume.integer("run.step", 1)[0]);
+      const std::vector<double>& force = resume.real("run.peak_force");
+      peaks.time = resume.real("run.peak_time", force.size() / 3);
+      for (std::size_t i = 0; i < peaks.time.size(); ++i) {
+        peaks.force.emplace_back(force[3 * i], force[3 * i + 1], force[3 * i + 2]);
+      }
+    } else {
+      first = sim->frame(0.0, 0);
+      writer->write(first);
+      // Each dual-grid wall's layer (cells, Gamma and Phi facets) for ParaView next to the
+      // particles; only the geometry, not the coupling matrices (those are mpm prep's package).
+      for (const DualWallSpec& wall : scene.dual_walls) {
+        BoundaryPackage geometry;
+        geometry.grid = wall.package->grid;
+        geometry.layer = wall.package->layer;
+        geometry.source = wall.package->source;
+        save_boundary_package(geometry, out / ("wall_" + wall.name + ".h5"),
+                              out / ("wall_" + wall.name + ".xmf"));
+      }
+      history->row(0.0, 0, 0.0, *sim, 0.0);
+      checkpoint();
     }
-    history->row(0.0, 0, 0.0, *sim, 0.0);
     bool last_written = true;
     while (t < end - eps) {
       if (scene.fixed_dt) {
@@ -322,8 +429,10 @@ int run_scene(const Scene& scene, const RunOptions& options) {
         writer->write(sim->frame(t, step));
         last_written = true;
         while (next_output <= t + eps) next_output += scene.output_interval;
+        checkpoint();
       }
       progress.update(t, step);
+      if (options.halt_after_steps >= 0 && step >= options.halt_after_steps) return kExitOk;
     }
     if (!last_written && !failure) writer->write(sim->frame(t, step));
   } catch (const std::exception& e) {
@@ -332,7 +441,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   }
   progress.update(t, step, true);
 
-  const double wall_seconds = seconds_since(wall_start);
+  const double wall_seconds = wall_before + seconds_since(wall_start);
   nlohmann::json summary = {
       {"scene", scene.file.string()},
       {"name", scene.name},
@@ -353,6 +462,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       {"warnings", warnings},
   };
   if (failure) summary["error"] = *failure;
+  if (options.resume) summary["resumed_from_step"] = resume.integer("run.step", 1)[0];
   const std::vector<std::string> walls = sim->wall_names();
   for (std::size_t i = 0; i < walls.size() && i < peaks.force.size(); ++i) {
     const Eigen::Vector3d& f = peaks.force[i];

@@ -628,6 +628,84 @@ ParticleFrame Solver<D>::frame(double time, std::int64_t step) const {
   return f;
 }
 
+namespace {
+
+// Appends the coefficients of fixed-size Eigen objects to a flat array, and reads them back.
+template <class T>
+std::vector<double> flatten(const std::vector<T>& values) {
+  std::vector<double> flat;
+  flat.reserve(values.size() * static_cast<std::size_t>(T::SizeAtCompileTime));
+  for (const T& v : values) flat.insert(flat.end(), v.data(), v.data() + v.size());
+  return flat;
+}
+
+template <class T>
+void unflatten(const std::vector<double>& flat, std::vector<T>& values) {
+  const auto size = static_cast<std::size_t>(T::SizeAtCompileTime);
+  values.resize(flat.size() / size);
+  for (std::size_t i = 0; i < values.size(); ++i) {
+    std::copy_n(flat.begin() + static_cast<std::ptrdiff_t>(i * size), size, values[i].data());
+  }
+}
+
+}  // namespace
+
+template <int D>
+void Solver<D>::save_state(Checkpoint& c) const {
+  const auto& P = particles;
+  c.reals["solver.position"] = flatten(P.position);
+  c.reals["solver.velocity"] = flatten(P.velocity);
+  c.reals["solver.affine"] = flatten(P.affine);
+  c.reals["solver.deformation_gradient"] = flatten(P.deformation_gradient);
+  c.reals["solver.stress"] = flatten(P.stress);
+  std::vector<double> state;
+  for (const PointState& s : P.state) {
+    state.push_back(s.stress_zz);
+    state.push_back(s.plastic_strain);
+  }
+  c.reals["solver.point_state"] = std::move(state);
+  c.reals["solver.mass"] = P.mass;
+  c.reals["solver.volume0"] = P.volume0;
+  c.reals["solver.half_width"] = P.half_width;
+  c.integers["solver.material"].assign(P.material.begin(), P.material.end());
+  c.integers["solver.body"].assign(P.body.begin(), P.body.end());
+  c.reals["solver.wall_impulse"] = flatten(wall_impulse_);
+  c.reals["solver.max_speed"] = {max_speed_};
+  for (std::size_t i = 0; i < dual_.size(); ++i) {
+    const auto& s = dual_[i].enh.previous_state;
+    c.integers["solver.enhanced_state_" + std::to_string(i)].assign(s.begin(), s.end());
+  }
+}
+
+template <int D>
+void Solver<D>::restore_state(const Checkpoint& c) {
+  auto& P = particles;
+  const std::size_t n = P.size();
+  const auto d = static_cast<std::size_t>(D);
+  unflatten(c.real("solver.position", n * d), P.position);
+  unflatten(c.real("solver.velocity", n * d), P.velocity);
+  unflatten(c.real("solver.affine", n * d * d), P.affine);
+  unflatten(c.real("solver.deformation_gradient", n * d * d), P.deformation_gradient);
+  unflatten(c.real("solver.stress", n * d * d), P.stress);
+  const std::vector<double>& state = c.real("solver.point_state", 2 * n);
+  for (std::size_t p = 0; p < n; ++p) P.state[p] = {state[2 * p], state[2 * p + 1]};
+  P.mass = c.real("solver.mass", n);
+  P.volume0 = c.real("solver.volume0", n);
+  P.half_width = c.real("solver.half_width", n);
+  const auto& material = c.integer("solver.material", n);
+  const auto& body = c.integer("solver.body", n);
+  for (std::size_t p = 0; p < n; ++p) {
+    P.material[p] = static_cast<int>(material[p]);
+    P.body[p] = static_cast<int>(body[p]);
+  }
+  unflatten(c.real("solver.wall_impulse", 3 * wall_impulse_.size()), wall_impulse_);
+  max_speed_ = c.real("solver.max_speed", 1)[0];
+  for (std::size_t i = 0; i < dual_.size(); ++i) {
+    const auto& s = c.integer("solver.enhanced_state_" + std::to_string(i));
+    dual_[i].enh.previous_state.assign(s.begin(), s.end());
+  }
+}
+
 std::unique_ptr<Simulation> make_simulation(const Scene& scene) {
   switch (scene.dimension) {
     case 1:

@@ -32,6 +32,10 @@ class ParticleWriter {
   /// Creates (truncates) the HDF5 file and the XDMF file. Throws std::runtime_error naming the
   /// file on failure.
   ParticleWriter(const std::filesystem::path& h5_path, const std::filesystem::path& xmf_path);
+  /// Reopens the files of an earlier run to continue it: keeps its first `keep_frames` frames,
+  /// deletes any later ones (written after the checkpoint being resumed) and rewrites the index.
+  ParticleWriter(const std::filesystem::path& h5_path, const std::filesystem::path& xmf_path,
+                 std::size_t keep_frames);
   ~ParticleWriter();
   ParticleWriter(const ParticleWriter&) = delete;
   ParticleWriter& operator=(const ParticleWriter&) = delete;

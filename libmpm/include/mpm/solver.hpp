@@ -15,6 +15,7 @@
 #include <string>
 #include <vector>
 
+#include "mpm/checkpoint.hpp"
 #include "mpm/dual_grid.hpp"
 #include "mpm/grid.hpp"
 #include "mpm/output.hpp"
@@ -51,6 +52,13 @@ class Simulation {
   /// Set when the last step produced a non-finite value, an inverted element or a particle
   /// outside the grid: names the particle, its material and the quantity.
   [[nodiscard]] virtual const std::optional<std::string>& fault() const = 0;
+  /// Everything the next step reads that the scene does not give (particle state, wall
+  /// impulses since the last history row, the largest particle speed, Enhanced contact states),
+  /// under "solver.*" keys.
+  virtual void save_state(Checkpoint& checkpoint) const = 0;
+  /// The inverse of save_state(); throws std::runtime_error naming the key that does not fit
+  /// this scene.
+  virtual void restore_state(const Checkpoint& checkpoint) = 0;
 };
 
 std::unique_ptr<Simulation> make_simulation(const Scene& scene);
@@ -75,6 +83,8 @@ class Solver final : public Simulation {
   [[nodiscard]] std::vector<std::string> wall_names() const override;
   [[nodiscard]] ParticleFrame frame(double time, std::int64_t step) const override;
   [[nodiscard]] const std::optional<std::string>& fault() const override { return fault_; }
+  void save_state(Checkpoint& checkpoint) const override;
+  void restore_state(const Checkpoint& checkpoint) override;
 
   // The phases of a step, public so tests can check each one.
   void particles_to_grid();

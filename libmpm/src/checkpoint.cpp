@@ -1,0 +1,126 @@
+#include "mpm/checkpoint.hpp"
+
+#include <stdexcept>
+
+#include "hdf5_util.hpp"
+
+namespace mpm {
+namespace {
+
+using namespace detail;  // NOLINT(google-build-using-namespace): HDF5 helpers
+
+template <class Map>
+const typename Map::mapped_type& lookup(const Map& map, const std::string& key, std::size_t size) {
+  const auto it = map.find(key);
+  if (it == map.end()) throw std::runtime_error("checkpoint has no '" + key + "'");
+  if constexpr (!std::is_same_v<typename Map::mapped_type, std::string>) {
+    if (size > 0 && it->second.size() != size) {
+      throw std::runtime_error("checkpoint '" + key + "' holds " +
+                               std::to_string(it->second.size()) + " values, expected " +
+                               std::to_string(size));
+    }
+  }
+  return it->second;
+}
+
+// Names of the links in a group, in creation order of the name index.
+std::vector<std::string> link_names(hid_t group) {
+  H5G_info_t info{};
+  std::vector<std::string> names;
+  if (H5Gget_info(group, &info) < 0) return names;
+  for (hsize_t i = 0; i < info.nlinks; ++i) {
+    const ssize_t size =
+        H5Lget_name_by_idx(group, ".", H5_INDEX_NAME, H5_ITER_INC, i, nullptr, 0, H5P_DEFAULT);
+    if (size < 0) continue;
+    std::string name(static_cast<std::size_t>(size) + 1, '\0');
+    H5Lget_name_by_idx(group, ".", H5_INDEX_NAME, H5_ITER_INC, i, name.data(), name.size(),
+                       H5P_DEFAULT);
+    name.resize(static_cast<std::size_t>(size));
+    names.push_back(std::move(name));
+  }
+  return names;
+}
+
+}  // namespace
+
+const std::vector<double>& Checkpoint::real(const std::string& key, std::size_t size) const {
+  return lookup(reals, key, size);
+}
+const std::vector<std::int64_t>& Checkpoint::integer(const std::string& key,
+                                                     std::size_t size) const {
+  return lookup(integers, key, size);
+}
+const std::string& Checkpoint::text(const std::string& key) const { return lookup(texts, key, 0); }
+
+void write_checkpoint(const std::filesystem::path& file, const Checkpoint& checkpoint) {
+  silence_hdf5();
+  std::filesystem::path tmp = file;
+  tmp += ".tmp";
+  const auto fail = [&]() {
+    std::error_code ignored;
+    std::filesystem::remove(tmp, ignored);
+    return std::runtime_error("cannot write checkpoint " + quoted(file));
+  };
+  {
+    const Handle h5(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
+    if (!h5.ok()) throw fail();
+    const Handle reals(H5Gcreate2(h5.get(), "reals", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
+                       H5Gclose);
+    const Handle ints(H5Gcreate2(h5.get(), "integers", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
+                      H5Gclose);
+    const Handle texts(H5Gcreate2(h5.get(), "texts", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
+                       H5Gclose);
+    bool good = reals.ok() && ints.ok() && texts.ok();
+    for (const auto& [key, values] : checkpoint.reals) {
+      good = good && write_dataset(reals.get(), key.c_str(), H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE,
+                                   values.data(), values.size(), 1);
+    }
+    for (const auto& [key, values] : checkpoint.integers) {
+      good = good && write_dataset(ints.get(), key.c_str(), H5T_STD_I64LE, H5T_NATIVE_INT64,
+                                   values.data(), values.size(), 1);
+    }
+    for (const auto& [key, value] : checkpoint.texts) {
+      good = good && write_dataset(texts.get(), key.c_str(), H5T_STD_I8LE, H5T_NATIVE_CHAR,
+                                   value.data(), value.size(), 1);
+    }
+    if (!good || H5Fflush(h5.get(), H5F_SCOPE_GLOBAL) < 0) throw fail();
+  }
+  std::error_code error;
+  std::filesystem::rename(tmp, file, error);
+  if (error) throw fail();
+}
+
+Checkpoint read_checkpoint(const std::filesystem::path& file) {
+  silence_hdf5();
+  const auto fail = [&](const std::string& what) {
+    return std::runtime_error("cannot read checkpoint " + quoted(file) + ": " + what);
+  };
+  const Handle h5(H5Fopen(file.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose);
+  if (!h5.ok()) throw fail("not an HDF5 file");
+  Checkpoint c;
+  const Handle reals(H5Gopen2(h5.get(), "reals", H5P_DEFAULT), H5Gclose);
+  const Handle ints(H5Gopen2(h5.get(), "integers", H5P_DEFAULT), H5Gclose);
+  const Handle texts(H5Gopen2(h5.get(), "texts", H5P_DEFAULT), H5Gclose);
+  if (!reals.ok() || !ints.ok() || !texts.ok()) throw fail("not a checkpoint");
+  std::size_t count = 0;
+  for (const std::string& key : link_names(reals.get())) {
+    if (!read_dataset(reals.get(), key.c_str(), H5T_NATIVE_DOUBLE, 1, count, c.reals[key])) {
+      throw fail(key);
+    }
+  }
+  for (const std::string& key : link_names(ints.get())) {
+    if (!read_dataset(ints.get(), key.c_str(), H5T_NATIVE_INT64, 1, count, c.integers[key])) {
+      throw fail(key);
+    }
+  }
+  for (const std::string& key : link_names(texts.get())) {
+    std::vector<char> chars;
+    if (!read_dataset(texts.get(), key.c_str(), H5T_NATIVE_CHAR, 1, count, chars)) {
+      throw fail(key);
+    }
+    c.texts[key] = std::string(chars.begin(), chars.end());
+  }
+  return c;
+}
+
+}  // namespace mpm
