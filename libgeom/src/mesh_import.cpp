@@ -125,6 +125,27 @@ void check_finite(const aiScene& scene, const fs::path& file) {
   }
 }
 
+// Faces assimp's parser produced but its validation lets through, on which its triangulation
+// aborts the process (an assertion in assimp 5.2, found by fuzz_mesh): a face without vertices,
+// or one whose size the mesh's primitive flags do not announce.
+void check_faces(const aiScene& scene, const fs::path& file) {
+  for (unsigned m = 0; m < scene.mNumMeshes; ++m) {
+    const aiMesh& mesh = *scene.mMeshes[m];
+    for (unsigned f = 0; f < mesh.mNumFaces; ++f) {
+      const unsigned n = mesh.mFaces[f].mNumIndices;
+      const unsigned type = n == 1   ? aiPrimitiveType_POINT
+                            : n == 2 ? aiPrimitiveType_LINE
+                            : n == 3 ? aiPrimitiveType_TRIANGLE
+                                     : aiPrimitiveType_POLYGON;
+      if (n > 0 && (mesh.mPrimitiveTypes & type) != 0) continue;
+      std::string where = "face " + std::to_string(f);
+      if (scene.mNumMeshes > 1) where += " of sub-mesh " + std::to_string(m);
+      fail(file, where + (n == 0 ? " has no vertices" : " does not match the file's face types") +
+                     " (a malformed file)");
+    }
+  }
+}
+
 // Triangles of every mesh instance, in the output frame, before welding.
 struct Soup {
   std::vector<Eigen::Vector3d> points;
@@ -417,6 +438,7 @@ TriangleMesh load_mesh(const fs::path& file, const ImportOptions& options, Impor
     fail(file, std::string("assimp cannot read it: ") + importer.GetErrorString());
   }
   check_finite(*scene, file);
+  check_faces(*scene, file);
   scene = importer.ApplyPostProcessing(aiProcess_RemoveComponent | aiProcess_Triangulate |
                                        aiProcess_JoinIdenticalVertices);
   if (scene == nullptr) {
@@ -588,6 +610,19 @@ Eigen::AlignedBox3d bounding_box(const TriangleMesh& mesh) {
   Eigen::AlignedBox3d box;  // starts empty
   for (Eigen::Index v = 0; v < mesh.V.rows(); ++v) box.extend(mesh.V.row(v).transpose().eval());
   return box;
+}
+
+void check_extent(const TriangleMesh& mesh, const std::string& name, double domain_diagonal,
+                  double factor) {
+  const Eigen::AlignedBox3d box = bounding_box(mesh);
+  if (box.isEmpty() || !(domain_diagonal > 0.0)) return;
+  const double diagonal = box.diagonal().norm();
+  if (diagonal <= factor * domain_diagonal) return;
+  std::ostringstream text;
+  text << "mesh '" << name << "': its bounding box (diagonal " << diagonal << ") is "
+       << diagonal / domain_diagonal << " times the grid's (" << domain_diagonal
+       << "); coordinates in other units? (millimetres for metres: scale 0.001)";
+  throw MeshError(text.str());
 }
 
 }  // namespace mpmgeom

@@ -381,11 +381,28 @@ BoundaryPackage prepare_boundary(const mpmgeom::TriangleMesh& imported,
                                  const mpmgeom::GridSpec& grid) {
   std::string why;
   if (!options.layer.valid(&why)) throw std::invalid_argument(why);
+  // A terrain may reach past the grid, but not by orders of magnitude (units).
+  Eigen::Vector3d extent = Eigen::Vector3d::Zero();
+  for (int d = 0; d < grid.dimension; ++d) extent[d] = (grid.nodes[d] - 1) * grid.spacing;
+  mpmgeom::check_extent(imported, mesh_file.string(), extent.norm());
   BoundaryPackage package;
   mpmgeom::TriangleMesh mesh =
       mpmgeom::validate_and_repair(imported, mesh_file.string(), options.repair, &package.repairs);
   if (options.remesh) {
-    mesh = mpmgeom::remesh_isotropic(mesh, options.remesh_factor * grid.spacing);
+    // Remeshing and the layer cost memory per triangle (about 1 kB in CGAL's remesher): refuse
+    // what would not fit in a workstation's memory rather than be killed by it.
+    const double edge = options.remesh_factor * grid.spacing;
+    const double triangles = mpmgeom::surface_area(mesh) / (std::sqrt(3.0) / 4.0 * edge * edge);
+    constexpr double kMaxTriangles = 5e6;
+    if (triangles > kMaxTriangles) {
+      std::ostringstream text;
+      text << "mesh '" << mesh_file.string() << "': remeshing its area "
+           << mpmgeom::surface_area(mesh) << " at edge length " << edge << " would make about "
+           << triangles << " triangles (at most " << kMaxTriangles
+           << "); coordinates in other units, or a finer spacing than meant?";
+      throw mpmgeom::MeshError(text.str());
+    }
+    mesh = mpmgeom::remesh_isotropic(mesh, edge);
   }
   package.layer = mpmgeom::extrude_layer(mesh, options.layer, &package.report);
   package.grid = grid;

@@ -349,8 +349,11 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
     try {
       mpmgeom::RepairOptions repair;
       repair.require_closed = true;
-      const mpmgeom::TriangleMesh mesh = mpmgeom::validate_and_repair(
-          mpmgeom::load_mesh(file, import), file.string(), repair, nullptr);
+      const mpmgeom::TriangleMesh imported = mpmgeom::load_mesh(file, import);
+      mpmgeom::check_extent(imported, file.string(),
+                            (scene.box_max - scene.box_min).head(dim).norm());
+      const mpmgeom::TriangleMesh mesh =
+          mpmgeom::validate_and_repair(imported, file.string(), repair, nullptr);
       body.points = mpmgeom::fill_closed_surface(mesh, scene.box_min.head<3>(), scene.spacing,
                                                  body.particles_per_cell);
     } catch (const std::exception& e) {

@@ -349,6 +349,15 @@ TEST(MeshImport, MissingFileThrowsWithFileName) {
   EXPECT_EQ(msg, "mesh '" + file.string() + "': file does not exist");
 }
 
+TEST(MeshImport, FaceWithoutVerticesThrowsInsteadOfAborting) {
+  // assimp 5.2 parses this garbled PLY with an empty face, validates it, and then aborts the
+  // whole process in its triangulation; load_mesh must refuse it before that (found by fuzzing).
+  const fs::path file = fs::path(MPM_DATA_DIR) / ".." / "tests" / "data" / "broken_meshes" /
+                        "face_without_vertices.ply";
+  const std::string msg = error_of([&] { load_mesh(file); });
+  EXPECT_EQ(msg, "mesh '" + file.string() + "': face 9 has no vertices (a malformed file)");
+}
+
 TEST(MeshImport, NonFiniteVertexInAsciiStlThrows) {
   ScratchDir dir;
   for (const std::string bad : {"nan", "inf"}) {

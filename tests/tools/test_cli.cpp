@@ -266,6 +266,41 @@ TEST_F(CommandLine, RejectsFixedTimeStepAboveCflLimit) {
   EXPECT_EQ(ok.exit_code, 0) << ok.err;
 }
 
+/// A 2 m box in 3D holding a mesh body or a mesh wall given in millimetres.
+json millimetre_scene(bool wall) {
+  json s = json::parse(R"({
+    "dimension": 3,
+    "grid": { "min": [0.0, 0.0, 0.0], "max": [2.0, 2.0, 2.0], "spacing": 0.1 },
+    "materials": [ { "name": "m", "model": "neo_hookean", "density": 1000,
+                     "youngs_modulus": 1.0e6, "poisson_ratio": 0.3 } ],
+    "time": { "end": 0.01 }
+  })");
+  const std::string meshes = std::string(MPM_DATA_DIR) + "/meshes/";
+  json body = {{"material", "m"}};
+  json shape = {{"type", "mesh"}, {"file", meshes + "unit_cube.obj"}};
+  json surface = {{"type", "mesh"}, {"file", meshes + "tilted_plane.obj"}};
+  (wall ? surface : shape)["scale"] = 1000.0;
+  body["shape"] =
+      wall ? json{{"type", "box"}, {"min", {0.5, 0.5, 1.2}}, {"max", {1.0, 1.0, 1.7}}} : shape;
+  s["bodies"] = json::array({body});
+  if (wall) {
+    s["walls"] = json::array(
+        {{{"name", "plane"}, {"method", "mortar"}, {"condition", "slip"}, {"surface", surface}}});
+  }
+  return s;
+}
+
+TEST_F(CommandLine, RejectsMeshBodyInMillimetres) {
+  // Filling a 1000 m cube on a 0.1 m lattice would never finish; refused before it starts.
+  write_scene(millimetre_scene(false));
+  expect_rejected("/bodies/0/shape/file", {"unit_cube.obj", "times the grid", "scale 0.001"});
+}
+
+TEST_F(CommandLine, RejectsWallMeshInMillimetres) {
+  write_scene(millimetre_scene(true));
+  expect_rejected("/walls/0/surface", {"tilted_plane.obj", "times the grid", "scale 0.001"});
+}
+
 TEST_F(CommandLine, RejectsInvalidJsonSyntax) {
   // A trailing comma on line 3: the message must say where, since the scene is never shown.
   write_text(scene_file_, "{\n  \"dimension\": 2,\n  \"name\": \"x\",\n}\n");

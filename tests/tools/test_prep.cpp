@@ -83,6 +83,19 @@ TEST_F(Prep, MissingMeshAndBadOptionsExitTwo) {
   EXPECT_FALSE(fs::exists(out));
 }
 
+TEST_F(Prep, RefusesARemeshTooLargeForMemory) {
+  // A 1 m plane given in millimetres, remeshed at 5 mm: about 1e11 triangles, which would be
+  // killed for memory hours later; refused at once with the count and the likely cause.
+  const fs::path out = dir_ / "p.h5";
+  const RunResult r = run_mpm({"prep", kMeshes + "tilted_plane.obj", "--spacing", "0.005",
+                               "--scale", "1000", "-o", out.string()});
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_TRUE(contains(r.err, "tilted_plane.obj")) << r.err;
+  EXPECT_TRUE(contains(r.err, "triangles")) << r.err;
+  EXPECT_FALSE(fs::exists(out));
+}
+
 TEST_F(Prep, KeepsAnExistingPackageUnlessTold) {
   const fs::path out = dir_ / "plane.h5";
   const std::vector<std::string> args{

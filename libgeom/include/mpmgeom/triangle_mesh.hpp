@@ -101,4 +101,12 @@ double surface_area(const TriangleMesh& mesh);
 /// Axis-aligned box of the rows of V; empty (isEmpty()) if V has none.
 Eigen::AlignedBox3d bounding_box(const TriangleMesh& mesh);
 
+/// Throws MeshError when the mesh is implausibly large for the domain it is placed in: its
+/// bounding-box diagonal more than `factor` times `domain_diagonal` (typically coordinates in
+/// millimetres for a scene in metres; the message suggests the scale). Call it before
+/// remeshing at the grid spacing or filling on its lattice, whose work grows with the square or
+/// the cube of that ratio: a mesh 1000 times too large would never finish.
+void check_extent(const TriangleMesh& mesh, const std::string& name, double domain_diagonal,
+                  double factor = 20.0);
+
 }  // namespace mpmgeom
