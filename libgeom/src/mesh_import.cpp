@@ -56,6 +56,30 @@ std::string lower_extension(const fs::path& file) {
   return ext;
 }
 
+// assimp 5.2's PLY reader loops forever (found by fuzz_mesh) when the header never ends or an
+// element line has no count, so those two header rules are checked before it sees the file. The
+// header is ASCII in every PLY variant; the body is left to assimp.
+void check_ply_header(const fs::path& file) {
+  std::ifstream in(file, std::ios::binary);
+  std::string line;
+  if (!std::getline(in, line) || line.rfind("ply", 0) != 0) return;  // not a PLY: assimp decides
+  for (int number = 2; std::getline(in, line); ++number) {
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    if (line == "end_header") return;
+    if (line.rfind("element", 0) != 0) continue;
+    std::istringstream words(line);
+    std::string keyword, name, count, extra;
+    words >> keyword >> name >> count;
+    const bool counted =
+        !count.empty() && count.find_first_not_of("0123456789") == std::string::npos;
+    if (keyword != "element" || name.empty() || !counted || (words >> extra)) {
+      fail(file, "PLY header line " + std::to_string(number) +
+                     " is not 'element <name> <count>' (a malformed file)");
+    }
+  }
+  fail(file, "PLY header has no end_header line (a malformed or truncated file)");
+}
+
 // assimp only says "Failed to determine STL storage representation" for a truncated binary STL,
 // which does not tell the user what is wrong. A binary STL is an 80-byte header, a uint32
 // triangle count and 50 bytes per triangle; assimp treats a file starting with "solid" as ASCII
@@ -422,6 +446,7 @@ TriangleMesh load_mesh(const fs::path& file, const ImportOptions& options, Impor
   if (!fs::exists(file, ec)) fail(file, "file does not exist");
   if (!fs::is_regular_file(file, ec)) fail(file, "is not a regular file");
   if (lower_extension(file) == ".stl") check_binary_stl_size(file);
+  check_ply_header(file);
 
   Assimp::Importer importer;
   // Normals, colours and UVs would keep assimp from joining vertices that only differ in them

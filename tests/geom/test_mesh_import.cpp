@@ -358,6 +358,27 @@ TEST(MeshImport, FaceWithoutVerticesThrowsInsteadOfAborting) {
   EXPECT_EQ(msg, "mesh '" + file.string() + "': face 9 has no vertices (a malformed file)");
 }
 
+TEST(MeshImport, PlyHeadersAssimpLoopsOnThrow) {
+  // assimp 5.2 never returns from these (found by fuzzing): refused before it sees them.
+  const fs::path dir = fs::temp_directory_path() / ("mpm_ply_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const auto write = [&](const std::string& name, const std::string& text) {
+    std::ofstream(dir / name) << text;
+    return dir / name;
+  };
+  const fs::path unended =
+      write("unended.ply", "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n0\n");
+  EXPECT_EQ(error_of([&] { load_mesh(unended); }),
+            "mesh '" + unended.string() +
+                "': PLY header has no end_header line (a malformed or truncated file)");
+  const fs::path uncounted =
+      write("uncounted.ply", "ply\nformat ascii 1.0\nelement vertex\nend_header\n");
+  EXPECT_EQ(error_of([&] { load_mesh(uncounted); }),
+            "mesh '" + uncounted.string() +
+                "': PLY header line 3 is not 'element <name> <count>' (a malformed file)");
+  fs::remove_all(dir);
+}
+
 TEST(MeshImport, NonFiniteVertexInAsciiStlThrows) {
   ScratchDir dir;
   for (const std::string bad : {"nan", "inf"}) {
