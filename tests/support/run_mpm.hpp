@@ -33,18 +33,9 @@ inline std::string slurp(std::FILE* f) {
   return text;
 }
 
-/// Runs the built `mpm` with `args` (no shell, so paths need no quoting). stdout and stderr go to
-/// anonymous temporary files rather than pipes so a chatty child can never block on a full pipe.
-inline RunResult run_mpm(const std::vector<std::string>& args) {
-  RunResult result;
-  std::FILE* out = std::tmpfile();
-  std::FILE* err = std::tmpfile();
-  if (out == nullptr || err == nullptr) {
-    ADD_FAILURE() << "tmpfile() failed";
-    if (out != nullptr) std::fclose(out);
-    if (err != nullptr) std::fclose(err);
-    return result;
-  }
+/// Starts the built `mpm` with `args` (no shell, so paths need no quoting), stdin from /dev/null
+/// and stdout/stderr to the given descriptors (-1: inherited). Returns the child's pid, or -1.
+inline pid_t start_mpm(const std::vector<std::string>& args, int out_fd = -1, int err_fd = -1) {
   std::vector<std::string> argv_text{MPM_BINARY};
   argv_text.insert(argv_text.end(), args.begin(), args.end());
   std::vector<char*> argv;
@@ -56,11 +47,27 @@ inline RunResult run_mpm(const std::vector<std::string>& args) {
   if (pid == 0) {
     const int devnull = ::open("/dev/null", O_RDONLY);
     if (devnull >= 0) ::dup2(devnull, STDIN_FILENO);
-    ::dup2(::fileno(out), STDOUT_FILENO);
-    ::dup2(::fileno(err), STDERR_FILENO);
+    if (out_fd >= 0) ::dup2(out_fd, STDOUT_FILENO);
+    if (err_fd >= 0) ::dup2(err_fd, STDERR_FILENO);
     ::execv(argv[0], argv.data());
     ::_exit(127);  // exec failed; only async-signal-safe calls here
   }
+  return pid;
+}
+
+/// Runs the built `mpm` with `args`. stdout and stderr go to anonymous temporary files rather
+/// than pipes so a chatty child can never block on a full pipe.
+inline RunResult run_mpm(const std::vector<std::string>& args) {
+  RunResult result;
+  std::FILE* out = std::tmpfile();
+  std::FILE* err = std::tmpfile();
+  if (out == nullptr || err == nullptr) {
+    ADD_FAILURE() << "tmpfile() failed";
+    if (out != nullptr) std::fclose(out);
+    if (err != nullptr) std::fclose(err);
+    return result;
+  }
+  const pid_t pid = start_mpm(args, ::fileno(out), ::fileno(err));
   if (pid < 0) {
     ADD_FAILURE() << "fork() failed";
   } else {

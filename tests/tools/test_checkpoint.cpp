@@ -138,17 +138,8 @@ INSTANTIATE_TEST_SUITE_P(Walls, Checkpoint, ::testing::Values("mortar", "granula
 
 /// Starts `mpm ARGS` and kills it with SIGKILL after `delay`; returns false if it ended first.
 bool kill_after(const std::vector<std::string>& args, std::chrono::milliseconds delay) {
-  std::vector<std::string> text{MPM_BINARY};
-  text.insert(text.end(), args.begin(), args.end());
-  std::vector<char*> argv;
-  for (auto& a : text) argv.push_back(a.data());
-  argv.push_back(nullptr);
-  std::fflush(nullptr);
-  const pid_t pid = ::fork();
-  if (pid == 0) {
-    ::execv(argv[0], argv.data());
-    ::_exit(127);
-  }
+  const pid_t pid = start_mpm(args);
+  if (pid < 0) return false;
   std::this_thread::sleep_for(delay);
   ::kill(pid, SIGKILL);
   int status = 0;
