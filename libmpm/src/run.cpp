@@ -10,6 +10,7 @@
 #include <cstdio>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <sstream>
 
 #include <nlohmann/json.hpp>
@@ -112,8 +113,7 @@ class History {
 
   /// Writes a row; returns the force on each wall (what the CSV holds), for the peaks.
   std::vector<Eigen::Vector3d> row(double t, long step, double dt, const Simulation& sim,
-                                   double elapsed) {
-    const Energies e = sim.energies();
+                                   double elapsed, const Energies& e) {
     const Eigen::Vector3d p = sim.momentum();
     out_ << t << ',' << step << ',' << dt << ',' << e.kinetic << ',' << e.strain << ',' << e.gravity
          << ',' << e.total();
@@ -241,6 +241,70 @@ std::string scene_digest(const Scene& scene) {
   return hex.str();
 }
 
+/// Runaway energy: the total (kinetic + strain + gravitational) energy of a run without other
+/// body forces can only fall, up to round-off and the small gains of the transfers. The run is
+/// stopped when it has risen above its start by more than the largest kinetic + strain energy it
+/// has held and more than the material's weight times one cell (all of it jumping by h): a gain
+/// no correct run comes near, which a blow-up passes before a value turns non-finite (in the
+/// test, an unstable step, two steps before the CFL check trips on the speed).
+class EnergyGuard {
+ public:
+  EnergyGuard(const Scene& scene, const ParticleFrame& first) {
+    for (const BodySpec& body : scene.bodies) {
+      if (body.body_force.size() > 0 && body.body_force.norm() > 0.0) active_ = false;
+    }
+    double mass = 0.0;
+    for (const double m : first.mass) mass += m;
+    floor_ = mass * scene.gravity.norm() * scene.spacing;
+  }
+
+  void start(double total, double mechanical) {
+    start_ = total;
+    peak_ = mechanical;
+  }
+
+  /// The runaway description, or nothing; `e` is this history row's energies.
+  std::optional<std::string> check(const Energies& e, const Simulation& sim, const Scene& scene,
+                                   double t, long step) {
+    const double gain = e.total() - start_;
+    const double limit = std::max(peak_, floor_);
+    peak_ = std::max(peak_, e.kinetic + e.strain);
+    if (!active_ || !(gain > limit)) return std::nullopt;
+    // Name the particle moving fastest, where a blow-up shows first.
+    const ParticleFrame f = sim.frame(t, step);
+    std::size_t fastest = 0;
+    double speed = -1.0;
+    for (std::size_t p = 0; p < f.count; ++p) {
+      const double v = std::hypot(f.velocity[3 * p], f.velocity[3 * p + 1], f.velocity[3 * p + 2]);
+      if (v > speed) {
+        speed = v;
+        fastest = p;
+      }
+    }
+    std::ostringstream text;
+    text << "runaway energy: the total energy rose by " << gain
+         << " J above its start, more than the largest kinetic + strain energy held (or the "
+            "weight times one cell), "
+         << limit << " J; fastest particle " << fastest << " (material \""
+         << scene.materials[static_cast<std::size_t>(f.material[fastest])].name << "\", body \""
+         << scene.bodies[static_cast<std::size_t>(f.body[fastest])].name << "\") at " << speed
+         << " m/s";
+    return text.str();
+  }
+
+  [[nodiscard]] std::vector<double> state() const { return {start_, peak_}; }
+  void restore(const std::vector<double>& state) {
+    start_ = state[0];
+    peak_ = state[1];
+  }
+
+ private:
+  bool active_ = true;
+  double floor_ = 0.0;
+  double start_ = 0.0;
+  double peak_ = 0.0;
+};
+
 nlohmann::json energy_json(const Energies& e) {
   return {
       {"kinetic", e.kinetic}, {"strain", e.strain}, {"gravity", e.gravity}, {"total", e.total()}};
@@ -334,6 +398,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   std::optional<std::string> failure;
   Progress progress(end, options.quiet);
   ForcePeaks peaks;
+  std::unique_ptr<EnergyGuard> guard;
   double wall_before = 0.0;  // wall-clock seconds of the runs this one continues
   const std::string digest = scene_digest(scene);
   // Written with every particle frame, after it: a resumed run drops what came later.
@@ -356,6 +421,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
     for (const auto& f : peaks.force) force.insert(force.end(), f.data(), f.data() + 3);
     c.reals["run.peak_force"] = force;
     c.reals["run.peak_time"] = peaks.time;
+    c.reals["run.energy"] = guard->state();
     write_checkpoint(out / "checkpoint.h5", c);
   };
 
@@ -375,9 +441,14 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       for (std::size_t i = 0; i < peaks.time.size(); ++i) {
         peaks.force.emplace_back(force[3 * i], force[3 * i + 1], force[3 * i + 2]);
       }
+      guard = std::make_unique<EnergyGuard>(scene, first);
+      guard->restore(resume.real("run.energy", 2));
     } else {
       first = sim->frame(0.0, 0);
       writer->write(first);
+      guard = std::make_unique<EnergyGuard>(scene, first);
+      const Energies e0 = sim->energies();
+      guard->start(e0.total(), e0.kinetic + e0.strain);
       // Each dual-grid wall's layer (cells, Gamma and Phi facets) for ParaView next to the
       // particles; only the geometry, not the coupling matrices (those are mpm prep's package).
       for (const DualWallSpec& wall : scene.dual_walls) {
@@ -388,7 +459,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
         save_boundary_package(geometry, out / ("wall_" + wall.name + ".h5"),
                               out / ("wall_" + wall.name + ".xmf"));
       }
-      history->row(0.0, 0, 0.0, *sim, 0.0);
+      history->row(0.0, 0, 0.0, *sim, 0.0, e0);
       checkpoint();
     }
     bool last_written = true;
@@ -417,8 +488,13 @@ int run_scene(const Scene& scene, const RunOptions& options) {
         break;
       }
       if (scene.history_interval == 0.0 || t >= next_history - eps || t >= end - eps) {
-        peaks.add(t, history->row(t, step, dt, *sim, since_history));
+        const Energies e = sim->energies();
+        peaks.add(t, history->row(t, step, dt, *sim, since_history, e));
         sim->reset_wall_impulses();
+        if (auto runaway = guard->check(e, *sim, scene, t, step)) {
+          failure = "step " + std::to_string(step) + ", t = " + num(t) + ": " + *runaway;
+          break;
+        }
         since_history = 0.0;
         while (next_history <= t + eps && scene.history_interval > 0.0) {
           next_history += scene.history_interval;

@@ -516,6 +516,36 @@ TEST_F(CommandLine, ReportsBodyLeavingGridAsFault) {
   EXPECT_TRUE(fs::exists(out_dir_ / "particles.xmf"));
 }
 
+TEST_F(CommandLine, ReportsRunawayEnergyAsFault) {
+  // An elastic block on a slip floor with a fixed step of 0.9 h/c: below the CFL check, but
+  // explicit MPM with the B-spline is unstable there, and the energy grows (470 J to 1800 J
+  // within 119 steps without the guard, when the CFL check finally trips on the speed). The
+  // energy guard stops it first (step 117), naming the fastest particle.
+  json scene = json::parse(R"({
+    "dimension": 2,
+    "grid": { "min": [0.0, 0.0], "max": [1.0, 1.0], "spacing": 0.05 },
+    "shape_function": "bspline2",
+    "scheme": { "update": "usl", "transfer": "flip", "flip_blend": 1.0 },
+    "gravity": [0.0, -9.81],
+    "materials": [ { "name": "rubber", "model": "neo_hookean", "density": 1000,
+                     "youngs_modulus": 1.0e6, "poisson_ratio": 0.3 } ],
+    "bodies": [ { "name": "block", "material": "rubber",
+                  "shape": { "type": "box", "min": [0.3, 0.1], "max": [0.7, 0.5] } } ],
+    "walls": [ { "face": "ymin", "condition": "slip" } ],
+    "time": { "end": 2.0, "dt": 0.0012265 },
+    "output": { "interval": 0.5 }
+  })");
+  write_scene(scene);
+  const RunResult r = run_scene();
+  EXPECT_EQ(r.exit_code, 3) << r.err;
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_TRUE(contains(r.err, "runaway energy")) << r.err;
+  EXPECT_TRUE(contains(r.err, "material \"rubber\", body \"block\"")) << r.err;
+  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  EXPECT_EQ(summary.at("status"), "failed");
+  EXPECT_LT(summary.at("steps").get<long>(), 119) << "before the CFL check would have stopped it";
+}
+
 TEST_F(CommandLine, ReportsFixedTimeStepOutgrownByVelocityAsFault) {
   // A steel bar (c = sqrt(E/rho) = 5048 m/s, h/c = 1.981e-6 s) moving at 50 m/s: the fixed step
   // passes the load-time check against h/c but not the run-time one against h/(c + |v|) =
