@@ -392,13 +392,14 @@ BoundaryPackage prepare_boundary(const mpmgeom::TriangleMesh& imported,
     // Remeshing and the layer cost memory per triangle (about 1 kB in CGAL's remesher): refuse
     // what would not fit in a workstation's memory rather than be killed by it.
     const double edge = options.remesh_factor * grid.spacing;
-    const double triangles = mpmgeom::surface_area(mesh) / (std::sqrt(3.0) / 4.0 * edge * edge);
+    const double area = mpmgeom::surface_area(mesh);
+    const double triangles = area / (std::sqrt(3.0) / 4.0 * edge * edge);
     constexpr double kMaxTriangles = 5e6;
     if (triangles > kMaxTriangles) {
       std::ostringstream text;
-      text << "mesh '" << mesh_file.string() << "': remeshing its area "
-           << mpmgeom::surface_area(mesh) << " at edge length " << edge << " would make about "
-           << triangles << " triangles (at most " << kMaxTriangles
+      text << "mesh '" << mesh_file.string() << "': remeshing its area " << area
+           << " at edge length " << edge << " would make about " << triangles
+           << " triangles (at most " << kMaxTriangles
            << "); coordinates in other units, or a finer spacing than meant?";
       throw mpmgeom::MeshError(text.str());
     }

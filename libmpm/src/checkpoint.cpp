@@ -23,24 +23,6 @@ const typename Map::mapped_type& lookup(const Map& map, const std::string& key, 
   return it->second;
 }
 
-// Names of the links in a group, in creation order of the name index.
-std::vector<std::string> link_names(hid_t group) {
-  H5G_info_t info{};
-  std::vector<std::string> names;
-  if (H5Gget_info(group, &info) < 0) return names;
-  for (hsize_t i = 0; i < info.nlinks; ++i) {
-    const ssize_t size =
-        H5Lget_name_by_idx(group, ".", H5_INDEX_NAME, H5_ITER_INC, i, nullptr, 0, H5P_DEFAULT);
-    if (size < 0) continue;
-    std::string name(static_cast<std::size_t>(size) + 1, '\0');
-    H5Lget_name_by_idx(group, ".", H5_INDEX_NAME, H5_ITER_INC, i, name.data(), name.size(),
-                       H5P_DEFAULT);
-    name.resize(static_cast<std::size_t>(size));
-    names.push_back(std::move(name));
-  }
-  return names;
-}
-
 }  // namespace
 
 const std::vector<double>& Checkpoint::real(const std::string& key, std::size_t size) const {
@@ -90,7 +72,7 @@ void write_checkpoint(const std::filesystem::path& file, const Checkpoint& check
   if (error) throw fail();
 }
 
-Checkpoint read_checkpoint(const std::filesystem::path& file) {
+Checkpoint read_checkpoint(const std::filesystem::path& file, bool texts_only) {
   silence_hdf5();
   const auto fail = [&](const std::string& what) {
     return std::runtime_error("cannot read checkpoint " + quoted(file) + ": " + what);
@@ -103,22 +85,28 @@ Checkpoint read_checkpoint(const std::filesystem::path& file) {
   const Handle texts(H5Gopen2(h5.get(), "texts", H5P_DEFAULT), H5Gclose);
   if (!reals.ok() || !ints.ok() || !texts.ok()) throw fail("not a checkpoint");
   std::size_t count = 0;
-  for (const std::string& key : link_names(reals.get())) {
-    if (!read_dataset(reals.get(), key.c_str(), H5T_NATIVE_DOUBLE, 1, count, c.reals[key])) {
-      throw fail(key);
-    }
-  }
-  for (const std::string& key : link_names(ints.get())) {
-    if (!read_dataset(ints.get(), key.c_str(), H5T_NATIVE_INT64, 1, count, c.integers[key])) {
-      throw fail(key);
-    }
-  }
-  for (const std::string& key : link_names(texts.get())) {
+  std::vector<std::string> keys;
+  const auto list = [&](const Handle& group) {
+    if (!link_names(group.get(), keys)) throw fail("cannot list its contents");
+    return keys;
+  };
+  for (const std::string& key : list(texts)) {
     std::vector<char> chars;
     if (!read_dataset(texts.get(), key.c_str(), H5T_NATIVE_CHAR, 1, count, chars)) {
       throw fail(key);
     }
     c.texts[key] = std::string(chars.begin(), chars.end());
+  }
+  if (texts_only) return c;
+  for (const std::string& key : list(reals)) {
+    if (!read_dataset(reals.get(), key.c_str(), H5T_NATIVE_DOUBLE, 1, count, c.reals[key])) {
+      throw fail(key);
+    }
+  }
+  for (const std::string& key : list(ints)) {
+    if (!read_dataset(ints.get(), key.c_str(), H5T_NATIVE_INT64, 1, count, c.integers[key])) {
+      throw fail(key);
+    }
   }
   return c;
 }

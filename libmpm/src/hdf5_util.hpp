@@ -108,6 +108,25 @@ bool read_dataset(hid_t group, const char* name, hid_t mem_type, std::size_t com
   return count == 0 || H5Dread(set.get(), mem_type, H5S_ALL, H5S_ALL, H5P_DEFAULT, out.data()) >= 0;
 }
 
+// The names of the links in a group, in the name index's order. Returns false if the group
+// cannot be listed (the caller, which knows the file name, builds the message).
+inline bool link_names(hid_t group, std::vector<std::string>& names) {
+  H5G_info_t info{};
+  if (H5Gget_info(group, &info) < 0) return false;
+  names.clear();
+  for (hsize_t i = 0; i < info.nlinks; ++i) {
+    const ssize_t size =
+        H5Lget_name_by_idx(group, ".", H5_INDEX_NAME, H5_ITER_INC, i, nullptr, 0, H5P_DEFAULT);
+    if (size < 0) return false;
+    std::string name(static_cast<std::size_t>(size) + 1, '\0');
+    H5Lget_name_by_idx(group, ".", H5_INDEX_NAME, H5_ITER_INC, i, name.data(), name.size(),
+                       H5P_DEFAULT);
+    name.resize(static_cast<std::size_t>(size));
+    names.push_back(std::move(name));
+  }
+  return true;
+}
+
 template <typename T>
 bool read_attribute(hid_t group, const char* name, hid_t mem_type, T& value) {
   const Handle attr(H5Aopen(group, name, H5P_DEFAULT), H5Aclose);

@@ -37,20 +37,9 @@ Handle open_for_reading(const std::filesystem::path& h5_path) {
 // should a run ever outgrow the six-digit padding.
 std::vector<std::string> frame_names(hid_t file, const std::filesystem::path& h5_path) {
   const Handle frames(H5Gopen2(file, "/frames", H5P_DEFAULT), H5Gclose);
-  H5G_info_t info{};
-  if (!frames.ok() || H5Gget_info(frames.get(), &info) < 0) {
-    throw std::runtime_error("no /frames group in HDF5 file " + quoted(h5_path));
-  }
   std::vector<std::string> names;
-  for (hsize_t i = 0; i < info.nlinks; ++i) {
-    const ssize_t size = H5Lget_name_by_idx(frames.get(), ".", H5_INDEX_NAME, H5_ITER_INC, i,
-                                            nullptr, 0, H5P_DEFAULT);
-    if (size < 0) throw std::runtime_error("cannot list frames in HDF5 file " + quoted(h5_path));
-    std::string name(static_cast<std::size_t>(size) + 1, '\0');
-    H5Lget_name_by_idx(frames.get(), ".", H5_INDEX_NAME, H5_ITER_INC, i, name.data(), name.size(),
-                       H5P_DEFAULT);
-    name.resize(static_cast<std::size_t>(size));
-    names.push_back(std::move(name));
+  if (!frames.ok() || !link_names(frames.get(), names)) {
+    throw std::runtime_error("no /frames group in HDF5 file " + quoted(h5_path));
   }
   std::sort(names.begin(), names.end(), [](const std::string& a, const std::string& b) {
     return a.size() != b.size() ? a.size() < b.size() : a < b;

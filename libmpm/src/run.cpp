@@ -313,13 +313,14 @@ nlohmann::json energy_json(const Energies& e) {
 }  // namespace
 
 std::filesystem::path checkpoint_scene(const std::filesystem::path& out_dir) {
-  return read_checkpoint(out_dir / "checkpoint.h5").text("run.scene");
+  return read_checkpoint(out_dir / "checkpoint.h5", true).text("run.scene");
 }
 
 int run_scene(const Scene& scene, const RunOptions& options) {
   namespace fs = std::filesystem;
   const fs::path& out = options.out_dir;
   std::error_code ec;
+  const std::string digest = scene_digest(scene);
   Checkpoint resume;
   if (options.resume) {
     if (fs::exists(out / "summary.json", ec)) {
@@ -329,7 +330,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
     }
     try {
       resume = read_checkpoint(out / "checkpoint.h5");
-      if (resume.text("run.scene_digest") != scene_digest(scene)) {
+      if (resume.text("run.scene_digest") != digest) {
         std::cerr << "mpm: " << scene.file.string() << ": changed since the checkpoint in "
                   << out.string() << " was written; run it afresh with --overwrite\n";
         return kExitBadInput;
@@ -400,7 +401,6 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   ForcePeaks peaks;
   std::unique_ptr<EnergyGuard> guard;
   double wall_before = 0.0;  // wall-clock seconds of the runs this one continues
-  const std::string digest = scene_digest(scene);
   // Written with every particle frame, after it: a resumed run drops what came later.
   const auto checkpoint = [&]() {
     Checkpoint c;

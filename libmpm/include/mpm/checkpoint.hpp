@@ -26,7 +26,8 @@ struct Checkpoint {
 
 /// Writes FILE.tmp, flushes and closes it, then renames it over FILE.
 void write_checkpoint(const std::filesystem::path& file, const Checkpoint& checkpoint);
-/// Throws std::runtime_error naming the file when it cannot be read.
-Checkpoint read_checkpoint(const std::filesystem::path& file);
+/// Throws std::runtime_error naming the file when it cannot be read. `texts_only` skips the
+/// arrays (the particle state), for a caller that needs only, say, the scene path.
+Checkpoint read_checkpoint(const std::filesystem::path& file, bool texts_only = false);
 
 }  // namespace mpm
