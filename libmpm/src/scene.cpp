@@ -760,12 +760,14 @@ Scene load_scene(const std::filesystem::path& file) {
   json doc;
   try {
     doc = json::parse(in);
-  } catch (const json::parse_error& e) {
-    // e.what() is "[json.exception.parse_error.101] parse error at line 3, column 5: ..."
+  } catch (const json::exception& e) {
+    // A syntax error ("[json.exception.parse_error.101] parse error at line 3, column 5: ...")
+    // or a number too large for a double ("[json.exception.out_of_range.406] number overflow
+    // parsing '1.0e6333...'", found by fuzz_scene: it escaped as an uncaught exception).
     std::string what = e.what();
-    const auto at = what.find("parse error");
+    const auto tag = what.find("] ");
     throw SceneError(file.string() +
-                     ": invalid JSON: " + (at == std::string::npos ? what : what.substr(at)));
+                     ": invalid JSON: " + (tag == std::string::npos ? what : what.substr(tag + 2)));
   }
   return parse_scene(doc, file);
 }
