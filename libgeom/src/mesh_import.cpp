@@ -10,10 +10,18 @@
 #include <assimp/Exporter.hpp>
 #include <assimp/Importer.hpp>
 
+#include <fcntl.h>
+#include <poll.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <array>
 #include <bit>
 #include <cctype>
+#include <cerrno>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <fstream>
@@ -57,10 +65,14 @@ std::string lower_extension(const fs::path& file) {
 }
 
 // assimp 5.2's PLY reader loops forever (found by fuzz_mesh) when the header never ends or an
-// element line has no count, so those two header rules are checked before it sees the file. The
-// header is ASCII in every PLY variant; the body is left to assimp.
+// element line has no count, so those two header rules are checked before it sees the file, and
+// that the counts fit in the file. The header is ASCII in every PLY variant; the body is left to
+// assimp (whose runaway allocations on it the child process of load_mesh bounds).
 void check_ply_header(const fs::path& file) {
+  std::error_code ec;
+  const std::uintmax_t size = fs::file_size(file, ec);
   std::ifstream in(file, std::ios::binary);
+  if (ec || !in) return;  // let assimp report the I/O problem in its own words
   std::string line;
   if (!std::getline(in, line) || line.rfind("ply", 0) != 0) return;  // not a PLY: assimp decides
   for (int number = 2; std::getline(in, line); ++number) {
@@ -75,6 +87,13 @@ void check_ply_header(const fs::path& file) {
     if (keyword != "element" || name.empty() || !counted || (words >> extra)) {
       fail(file, "PLY header line " + std::to_string(number) +
                      " is not 'element <name> <count>' (a malformed file)");
+    }
+    // Every element takes at least a byte of the body (assimp reserves memory for the count
+    // first: 35 digits of it were found by fuzz_mesh).
+    if (count.size() > 18 || std::stoull(count) > size) {
+      fail(file, "PLY header line " + std::to_string(number) + " announces " + count + " '" + name +
+                     "' elements, more than the file's " + std::to_string(size) +
+                     " bytes can hold (a malformed file)");
     }
   }
   fail(file, "PLY header has no end_header line (a malformed or truncated file)");
@@ -439,15 +458,11 @@ bool ImportOptions::valid(std::string* why) const {
   return true;
 }
 
-TriangleMesh load_mesh(const fs::path& file, const ImportOptions& options, ImportReport* report) {
-  std::string why;
-  if (!options.valid(&why)) fail(file, "invalid import options: " + why);
-  std::error_code ec;
-  if (!fs::exists(file, ec)) fail(file, "file does not exist");
-  if (!fs::is_regular_file(file, ec)) fail(file, "is not a regular file");
-  if (lower_extension(file) == ".stl") check_binary_stl_size(file);
-  check_ply_header(file);
+namespace {
 
+// What assimp gives, turned into a triangle soup in the output frame (checks included).
+void read_soup(const fs::path& file, const ImportOptions& options, Soup& soup,
+               ImportReport& report) {
   Assimp::Importer importer;
   // Normals, colours and UVs would keep assimp from joining vertices that only differ in them
   // (every STL corner has its own face normal); only positions matter here.
@@ -469,11 +484,288 @@ TriangleMesh load_mesh(const fs::path& file, const ImportOptions& options, Impor
   if (scene == nullptr) {
     fail(file, std::string("assimp post-processing failed: ") + importer.GetErrorString());
   }
+  soup = collect(*scene, options, file, report);
+}
+
+// ---- The import in a child process ------------------------------------------------------
+// assimp parses untrusted files, and fuzz_mesh keeps finding inputs on which it asserts, loops
+// or allocates without bound: an ASCII PLY face announcing 3.4e9 indices grew `mpm prep` to
+// 24 GB until the kernel killed it. So the parsing runs in a forked child that sends the soup
+// back through a pipe; the parent kills it when its resident memory or its run time passes a
+// budget, and every way the child can end other than with a soup becomes a MeshError naming the
+// file. Welding (build) stays in the parent: it is ours and bounded by the soup's size.
+
+struct Limits {
+  std::uint64_t memory_bytes;
+  double seconds;
+};
+
+// Generous for real meshes (assimp needs ~10-20 bytes of memory per byte of STL, and reads
+// ~100 MB/s), tight enough that a pathological file fails in seconds, not after swapping; never
+// more than 3/4 of the machine's memory, so that the budget, not the kernel, stops the reader.
+Limits limits_for(const fs::path& file) {
+  std::error_code ec;
+  const double size = static_cast<double>(fs::file_size(file, ec));
+  const double bytes = ec ? 0.0 : size;
+  const double physical =
+      static_cast<double>(::sysconf(_SC_PHYS_PAGES)) * static_cast<double>(::sysconf(_SC_PAGESIZE));
+  double memory = std::max(4.0 * (1ull << 30), 64.0 * bytes);
+  if (physical > 0.0) memory = std::min(memory, 0.75 * physical);
+  return {static_cast<std::uint64_t>(memory), 120.0 + bytes / 1e6};
+}
+
+void write_all(int fd, const void* data, std::size_t n) {
+  const char* p = static_cast<const char*>(data);
+  while (n > 0) {
+    const ssize_t w = ::write(fd, p, n);
+    if (w < 0 && errno == EINTR) continue;
+    if (w <= 0) ::_exit(3);  // the parent is gone or gave up on us
+    p += w;
+    n -= static_cast<std::size_t>(w);
+  }
+}
+
+void write_u64(int fd, std::uint64_t v) { write_all(fd, &v, sizeof v); }
+
+// Child: one status byte, then the soup and the report ('S') or a one-line message ('E').
+[[noreturn]] void child_import(int fd, const fs::path& file, const ImportOptions& options) {
+  std::string error;
+  try {
+    Soup soup;
+    ImportReport report;
+    read_soup(file, options, soup, report);
+    write_all(fd, "S", 1);
+    for (std::uint64_t v :
+         {std::uint64_t(report.input_vertices), std::uint64_t(report.input_triangles),
+          std::uint64_t(report.skipped_primitives)}) {
+      write_u64(fd, v);
+    }
+    write_u64(fd, soup.points.size());
+    write_all(fd, soup.points.data(), soup.points.size() * sizeof(Eigen::Vector3d));
+    write_u64(fd, soup.faces.size());
+    write_all(fd, soup.faces.data(), soup.faces.size() * sizeof(soup.faces[0]));
+    write_all(fd, soup.face_part.data(), soup.face_part.size() * sizeof(int));
+    write_u64(fd, soup.part_names.size());
+    for (const std::string& name : soup.part_names) {
+      write_u64(fd, name.size());
+      write_all(fd, name.data(), name.size());
+    }
+    ::_exit(0);
+  } catch (const MeshError& e) {
+    error = e.what();
+  } catch (const std::bad_alloc&) {
+    error = "mesh '" + file.string() + "': ran out of memory while reading it";
+  } catch (const std::exception& e) {
+    error = "mesh '" + file.string() + "': cannot read it: " + one_line(e.what());
+  }
+  write_all(fd, "E", 1);
+  write_all(fd, error.data(), error.size());
+  ::_exit(0);  // no atexit handlers, no flushing of the parent's buffers, no leak check
+}
+
+std::uint64_t resident_bytes(pid_t pid) {
+  std::ifstream statm("/proc/" + std::to_string(pid) + "/statm");
+  std::uint64_t size = 0, resident = 0;
+  statm >> size >> resident;
+  return resident * static_cast<std::uint64_t>(::sysconf(_SC_PAGESIZE));
+}
+
+// Parent: reads what the child sends, watching its memory and run time.
+class ChildReader {
+ public:
+  ChildReader(pid_t pid, int fd, const fs::path& file, Limits limits)
+      : pid_(pid),
+        fd_(fd),
+        file_(file),
+        limits_(limits),
+        start_(std::chrono::steady_clock::now()) {}
+  ChildReader(const ChildReader&) = delete;
+  ChildReader& operator=(const ChildReader&) = delete;
+  ~ChildReader() {
+    ::close(fd_);
+    if (!reaped_) {
+      ::kill(pid_, SIGKILL);
+      reap();
+    }
+  }
+
+  // False at end of stream (the child exited or died) before any byte of `n`.
+  bool read(void* data, std::size_t n) {
+    char* p = static_cast<char*>(data);
+    const std::size_t want = n;
+    while (n > 0) {
+      pollfd pfd{fd_, POLLIN, 0};
+      const int ready = ::poll(&pfd, 1, 20);
+      watch();
+      if (ready < 0 && errno != EINTR) fail(file_, "cannot wait for the mesh importer");
+      if (ready <= 0) continue;
+      const ssize_t r = ::read(fd_, p, n);
+      if (r < 0 && errno == EINTR) continue;
+      if (r <= 0) {
+        if (n == want) return false;
+        died("stopped in the middle of its answer");
+      }
+      p += r;
+      n -= static_cast<std::size_t>(r);
+    }
+    return true;
+  }
+
+  std::uint64_t u64() {
+    std::uint64_t v = 0;
+    if (!read(&v, sizeof v)) died("stopped in the middle of its answer");
+    return v;
+  }
+
+  // A count from the child, bounded by what the memory budget could have held.
+  std::size_t count(std::size_t item_bytes) {
+    const std::uint64_t n = u64();
+    if (n > limits_.memory_bytes / item_bytes) died("sent an impossible size");
+    return static_cast<std::size_t>(n);
+  }
+
+  std::string rest() {
+    std::string text;
+    char c;
+    while (read(&c, 1)) text.push_back(c);
+    return text;
+  }
+
+  // Waits for the child's exit; a clean exit is the only good end.
+  void finish() {
+    const int status = reap();
+    if (!(WIFEXITED(status) && WEXITSTATUS(status) == 0)) died("failed");
+  }
+
+  [[noreturn]] void died(const std::string& what) {
+    const int status = reaped_ ? status_ : (::kill(pid_, SIGKILL), reap());
+    std::string how = "the mesh importer (assimp) " + what;
+    if (WIFSIGNALED(status)) {
+      how += " (signal " + std::to_string(WTERMSIG(status)) + ")";
+    } else if (WIFEXITED(status) && WEXITSTATUS(status) != 0) {
+      how += " (exit " + std::to_string(WEXITSTATUS(status)) + ")";
+    }
+    fail(file_, how + " reading it: a malformed or unsupported file?");
+  }
+
+ private:
+  void watch() {
+    if (resident_bytes(pid_) > limits_.memory_bytes) {
+      ::kill(pid_, SIGKILL);
+      reap();
+      fail(file_, "reading it took more than " + std::to_string(limits_.memory_bytes >> 20) +
+                      " MiB of memory (a malformed file announcing huge counts?); stopped");
+    }
+    const double elapsed =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+    if (elapsed > limits_.seconds) {
+      ::kill(pid_, SIGKILL);
+      reap();
+      fail(file_, "reading it took more than " + format_number(limits_.seconds) +
+                      " s (a malformed file that makes the reader loop?); stopped");
+    }
+  }
+
+  int reap() {
+    if (reaped_) return status_;
+    while (::waitpid(pid_, &status_, 0) < 0 && errno == EINTR) {
+    }
+    reaped_ = true;
+    return status_;
+  }
+
+  pid_t pid_;
+  int fd_;
+  fs::path file_;
+  Limits limits_;
+  std::chrono::steady_clock::time_point start_;
+  bool reaped_ = false;
+  int status_ = 0;
+};
+
+void read_soup_isolated(const fs::path& file, const ImportOptions& options, Soup& soup,
+                        ImportReport& report) {
+  int fds[2];
+  if (::pipe2(fds, O_CLOEXEC) != 0) fail(file, "cannot start the mesh importer (pipe)");
+  const pid_t pid = ::fork();
+  if (pid < 0) {
+    ::close(fds[0]);
+    ::close(fds[1]);
+    fail(file, "cannot start the mesh importer (fork)");
+  }
+  if (pid == 0) {
+    ::close(fds[0]);
+    child_import(fds[1], file, options);
+  }
+  ::close(fds[1]);
+  ChildReader in(pid, fds[0], file, limits_for(file));
+  char status = 0;
+  if (!in.read(&status, 1)) {
+    in.finish();
+    in.died("ended without an answer");
+  }
+  if (status == 'E') {
+    const std::string message = in.rest();
+    in.finish();
+    throw MeshError(message);
+  }
+  if (status != 'S') in.died("sent a malformed answer");
+  report.input_vertices = in.u64();
+  report.input_triangles = in.u64();
+  report.skipped_primitives = in.u64();
+  soup.points.resize(in.count(sizeof(Eigen::Vector3d)));
+  if (!in.read(soup.points.data(), soup.points.size() * sizeof(Eigen::Vector3d)) &&
+      !soup.points.empty()) {
+    in.died("stopped in the middle of its answer");
+  }
+  soup.faces.resize(in.count(sizeof(soup.faces[0]) + sizeof(int)));
+  soup.face_part.resize(soup.faces.size());
+  if (!soup.faces.empty() &&
+      (!in.read(soup.faces.data(), soup.faces.size() * sizeof(soup.faces[0])) ||
+       !in.read(soup.face_part.data(), soup.face_part.size() * sizeof(int)))) {
+    in.died("stopped in the middle of its answer");
+  }
+  const std::size_t parts = in.count(sizeof(std::uint64_t));
+  for (std::size_t k = 0; k < parts; ++k) {
+    std::string name(in.count(1), '\0');
+    if (!name.empty() && !in.read(name.data(), name.size())) {
+      in.died("stopped in the middle of its answer");
+    }
+    soup.part_of_name.emplace(name, static_cast<int>(soup.part_names.size()));
+    soup.part_names.push_back(std::move(name));
+  }
+  in.finish();
+  // The child checked these; a soup that breaks them did not come from it.
+  for (std::size_t f = 0; f < soup.faces.size(); ++f) {
+    for (std::size_t v : soup.faces[f]) {
+      if (v >= soup.points.size()) in.died("sent a malformed answer");
+    }
+    if (soup.face_part[f] < 0 || static_cast<std::size_t>(soup.face_part[f]) >= parts) {
+      in.died("sent a malformed answer");
+    }
+  }
+}
+
+}  // namespace
+
+TriangleMesh load_mesh(const fs::path& file, const ImportOptions& options, ImportReport* report) {
+  std::string why;
+  if (!options.valid(&why)) fail(file, "invalid import options: " + why);
+  std::error_code ec;
+  if (!fs::exists(file, ec)) fail(file, "file does not exist");
+  if (!fs::is_regular_file(file, ec)) fail(file, "is not a regular file");
+  if (lower_extension(file) == ".stl") check_binary_stl_size(file);
+  check_ply_header(file);
 
   ImportReport local;
   ImportReport& rep = report ? *report : local;
   rep = ImportReport{};
-  const Soup soup = collect(*scene, options, file, rep);
+  Soup soup;
+  if (options.isolate) {
+    read_soup_isolated(file, options, soup, rep);
+  } else {
+    read_soup(file, options, soup, rep);
+  }
   return build(soup, options, file, rep);
 }
 

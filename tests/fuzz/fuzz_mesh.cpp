@@ -7,6 +7,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -25,7 +26,13 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     out.write(reinterpret_cast<const char*>(data + 1), static_cast<std::streamsize>(size - 1));
   }
   try {
-    const mpmgeom::TriangleMesh mesh = mpmgeom::load_mesh(file);
+    // In this process, so that the fuzzer sees assimp's coverage. MPM_FUZZ_ISOLATE=1 takes the
+    // production path instead, load_mesh's child process (which turns the reader's aborts, hangs
+    // and runaway allocations into a MeshError): run_fuzzer.sh reruns out-of-memory inputs so.
+    static const bool isolate = std::getenv("MPM_FUZZ_ISOLATE") != nullptr;
+    mpmgeom::ImportOptions import;
+    import.isolate = isolate;
+    const mpmgeom::TriangleMesh mesh = mpmgeom::load_mesh(file, import);
     mpmgeom::RepairOptions options;
     options.require_closed = (data[0] & 4) != 0;  // as a source volume
     (void)mpmgeom::validate_and_repair(mesh, file.string(), options);

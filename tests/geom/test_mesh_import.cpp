@@ -379,6 +379,63 @@ TEST(MeshImport, PlyHeadersAssimpLoopsOnThrow) {
   fs::remove_all(dir);
 }
 
+TEST(MeshImport, PlyCountsBeyondTheFileThrow) {
+  // Found by fuzzing: a header announcing 37 digits of faces, for which assimp reserves memory.
+  const fs::path file =
+      fs::path(MPM_DATA_DIR) / ".." / "tests" / "data" / "broken_meshes" / "huge_element_count.ply";
+  const std::string msg = error_of([&] { load_mesh(file); });
+  EXPECT_EQ(msg, "mesh '" + file.string() +
+                     "': PLY header line 13 announces 3333333333333333333333333333333333388 'face' "
+                     "elements, more than the file's " +
+                     std::to_string(fs::file_size(file)) + " bytes can hold (a malformed file)");
+}
+
+TEST(MeshImport, RunawayReaderIsStoppedAtItsMemoryBudget) {
+  // Found by fuzzing: an ASCII PLY face announcing 3.4e41 indices, on which assimp 5.2 keeps
+  // allocating (`mpm prep` grew to 24 GB until the kernel killed it). The reader runs in a child
+  // process that is stopped at its budget (4 GiB for a small file); this process carries on.
+  const fs::path file =
+      fs::path(MPM_DATA_DIR) / ".." / "tests" / "data" / "broken_meshes" / "huge_list_count.ply";
+  const std::string msg = error_of([&] { load_mesh(file); });
+  // 4096 MiB, or 3/4 of a machine with less than 5.3 GiB.
+  const std::string head = "mesh '" + file.string() + "': reading it took more than ";
+  const std::string tail = " MiB of memory (a malformed file announcing huge counts?); stopped";
+  ASSERT_GT(msg.size(), head.size() + tail.size()) << msg;
+  EXPECT_EQ(msg.substr(0, head.size()), head) << msg;
+  EXPECT_EQ(msg.substr(msg.size() - tail.size()), tail) << msg;
+  const std::string budget = msg.substr(head.size(), msg.size() - head.size() - tail.size());
+  EXPECT_EQ(budget.find_first_not_of("0123456789"), std::string::npos) << msg;
+  EXPECT_LE(std::stoll(budget), 4096) << msg;
+  // The same process still reads a good mesh, in a child and in itself.
+  EXPECT_EQ(load_mesh(kCube).F.rows(), 12);
+  ImportOptions in_process;
+  in_process.isolate = false;
+  EXPECT_EQ(load_mesh(kCube, in_process).F.rows(), 12);
+}
+
+TEST(MeshImport, ChildAndInProcessReadersAgree) {
+  // The soup crosses a pipe from the child: positions, faces, parts and the report must arrive
+  // exactly as the in-process reader makes them.
+  const fs::path file = fs::path(MPM_DATA_DIR) / "meshes" / "hillside_barrier.obj";
+  ImportOptions options;
+  options.rotation_deg = {10.0, -20.0, 30.0};
+  options.scale = 2.0;
+  ImportReport a, b;
+  const TriangleMesh isolated = load_mesh(file, options, &a);
+  options.isolate = false;
+  const TriangleMesh local = load_mesh(file, options, &b);
+  EXPECT_TRUE(isolated.V == local.V);
+  EXPECT_TRUE(isolated.F == local.F);
+  EXPECT_TRUE(isolated.part == local.part);
+  EXPECT_EQ(isolated.part_names, local.part_names);
+  EXPECT_GT(isolated.part_names.size(), 1u);
+  EXPECT_EQ(a.input_vertices, b.input_vertices);
+  EXPECT_EQ(a.input_triangles, b.input_triangles);
+  EXPECT_EQ(a.skipped_primitives, b.skipped_primitives);
+  EXPECT_EQ(a.dropped_degenerate_faces, b.dropped_degenerate_faces);
+  EXPECT_EQ(a.weld_tolerance, b.weld_tolerance);
+}
+
 TEST(MeshImport, NonFiniteVertexInAsciiStlThrows) {
   ScratchDir dir;
   for (const std::string bad : {"nan", "inf"}) {

@@ -43,6 +43,12 @@ struct ImportOptions {
   /// 1e-9 of the bounding-box diagonal: in effect exact-position welding, since positions
   /// arrive as float and one float step is ~6e-8 of the coordinate.
   double weld_tolerance = 0.0;
+  /// Parse the file in a child process (the default): assimp is a large parser of untrusted
+  /// input, and a malformed file can make it abort, loop or allocate without bound. The child
+  /// is killed past a memory budget (64 times the file size, at least 4 GiB, at most 3/4 of the
+  /// machine) or a time budget (120 s + 1 s per MB), and any end of it other than a mesh is a
+  /// MeshError. The fuzz target turns this off to see inside assimp.
+  bool isolate = true;
 
   /// True if the options can be used: scale finite and > 0, translation and rotation finite,
   /// weld_tolerance finite and >= 0. Otherwise false, and *why (if given) says which one.
@@ -73,7 +79,8 @@ class MeshError : public std::runtime_error {
 /// a part. Positions pass through assimp as float, so expect single-precision round-off.
 ///
 /// Throws MeshError if the file is missing or unreadable, assimp cannot parse it, a position is
-/// not finite, the options are invalid, or no non-degenerate triangle remains.
+/// not finite, the options are invalid, or no non-degenerate triangle remains; and, with
+/// options.isolate, if the reader dies, or passes its memory or time budget.
 ///
 /// @param[in]  file     mesh file; the format is detected by assimp
 /// @param[in]  options  placement and welding
