@@ -9,7 +9,10 @@
 // point, equal and opposite interface impulses), solved through the Schur complement on the
 // multipliers with Eigen's sparse Cholesky.
 
+#include <Eigen/Eigenvalues>
+
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <unordered_map>
 
@@ -61,6 +64,7 @@ void Solver<D>::setup_dual_walls() {
     w.force.assign(n, Vec<D>::Zero());
     w.velocity.assign(n, Vec<D>::Zero());
     w.velocity_new.assign(n, Vec<D>::Zero());
+    w.centroid.assign(n, Vec<D>::Zero());
     w.touch_gap.assign(n, std::numeric_limits<double>::infinity());
     w.enhanced = spec.method == CouplingMethod::enhanced;
     if (w.enhanced) {
@@ -188,6 +192,7 @@ void Solver<D>::layer_scatter(bool with_force) {
       }
     }
     std::fill(w.momentum.begin(), w.momentum.end(), Vec<D>::Zero());
+    if (!with_force) std::fill(w.centroid.begin(), w.centroid.end(), Vec<D>::Zero());
   }
   if (dual_.empty()) return;
   // Few particles live in layers; a serial loop keeps the scatter free of races.
@@ -221,10 +226,17 @@ void Solver<D>::layer_scatter(bool with_force) {
       reach = (1.0 + w.spec->contact.touch_tolerance) * half;
       window = w.touch_window[static_cast<std::size_t>(P.layer_cell[p])] + half;
     }
+    // The remap's nodal velocity is that of the particles at their centroid, which
+    // layer_gather_gradient() fits at: the particle's point of the isoparametric map.
+    Vec<D> at = Vec<D>::Zero();
+    if (!with_force) {
+      for (int k = 0; k < st.count; ++k) at += st.N[k] * w.position[st.node[k]];
+    }
     for (int k = 0; k < st.count; ++k) {
       const int node = st.node[k];
       const double N = st.N[k];
       w.momentum[node] += N * m * (v + C * (w.position[node] - P.position[p]));
+      if (!with_force) w.centroid[node] += N * m * at;
       if (with_force) {
         w.mass[node] += N * m;
         w.force[node] += vs * st.dN[k] + N * mb;
@@ -424,6 +436,73 @@ void Solver<D>::layer_couple(bool remapped) {
   }
 }
 
+namespace {
+
+// C_p of a boundary-grid particle under MUSL and APIC (docs/verification.md, rolling cylinder).
+// The remap leaves the old C_p out (layer_scatter: with it, a particle alone in a boundary cell
+// got its own C_p back and kept straining at a rate its stress never corrected), so a node's
+// remapped velocity is the velocity of its particles at their mass centroid, not at the node.
+// In a one-cell layer the top nodes see particles from below only, and the gradient of the
+// remapped field (C_p before) shrank a rotation up to 4 times there: the layer bled a rolling
+// disk's spin every step (mortar 10.5% on the rolling cylinder). Here C_p is the least-squares
+// affine fit of the remapped velocities at the centroids (weights N_i), which gives back an
+// affine particle field exactly. Two guards:
+// - Gamma nodes the wall holds are left out: their velocity is the wall's condition, not the
+//   material's, and a friction-sheared block would start to spin on them (the 2D incline sweep:
+//   |v_n| up to 1.2% of gT instead of 0.4%).
+// - The fit is scaled down where its affine kinetic energy, m_p sum_i N_i |C_p (x_i - x_p)|^2,
+//   exceeds the spread of v^{n+1} the particle was gathered from, m_p sum_i N_i |v_i - v_p|^2.
+//   Summed over particles the transfer then holds at most the grid's kinetic energy: it cannot
+//   create energy however the centroids lie.
+// Where the free nodes' centroids do not span the space (a lone particle, a cell held along
+// its whole wall side), the gradient of the remapped field, `gradient`, stays.
+template <int D>
+Mat<D> layer_affine(const DualWall<D>& w, const AlphaStencil<D>& st, const Mat<D>& gradient,
+                    const Vec<D>& velocity, double mass_threshold) {
+  const bool separable = w.spec->contact.separable;
+  std::array<double, 6> weight{};
+  double total = 0.0;
+  Vec<D> x_bar = Vec<D>::Zero(), v_bar = Vec<D>::Zero(), at = Vec<D>::Zero();
+  for (int k = 0; k < st.count; ++k) {
+    const int n = st.node[k];
+    at += st.N[k] * w.position[n];
+    const bool held = w.wall_index_of_node[n] >= 0 && !(separable && w.touch_gap[n] > 0.0);
+    if (w.mass[n] <= mass_threshold || held) continue;
+    weight[k] = st.N[k];
+    total += weight[k];
+    x_bar += weight[k] * w.centroid[n];
+    v_bar += weight[k] * w.velocity[n];
+  }
+  if (!(total > 0.0)) return gradient;
+  x_bar /= total;
+  v_bar /= total;
+  Mat<D> B = Mat<D>::Zero(), M = Mat<D>::Zero();
+  double spread = 0.0;
+  for (int k = 0; k < st.count; ++k) {
+    if (weight[k] == 0.0) continue;
+    const int n = st.node[k];
+    const Vec<D> d = w.centroid[n] - x_bar;
+    B += weight[k] * (w.velocity[n] - v_bar) * d.transpose();
+    M += weight[k] * d * d.transpose();
+    spread += weight[k] * (w.position[n] - at).squaredNorm();
+  }
+  // Centroids on a line (or a point) leave a direction unfitted: the smallest eigenvalue of
+  // their second moment against the nodes' own (1e-3: centroids spanning ~3% of the cell).
+  const Eigen::SelfAdjointEigenSolver<Mat<D>> moments(M, Eigen::EigenvaluesOnly);
+  if (!(moments.eigenvalues().minCoeff() > 1e-3 * spread / (total * D))) return gradient;
+  Mat<D> C = B * M.inverse();
+  double affine = 0.0, available = 0.0;
+  for (int k = 0; k < st.count; ++k) {
+    const int n = st.node[k];
+    affine += st.N[k] * (C * (w.position[n] - at)).squaredNorm();
+    available += st.N[k] * (w.velocity_new[n] - velocity).squaredNorm();
+  }
+  if (affine > available) C *= std::sqrt(available / affine);
+  return C;
+}
+
+}  // namespace
+
 // Boundary-grid particles: new velocity (PIC/FLIP blend or APIC with C_p = grad v, exact for the
 // linear alpha basis), displacement, and for USL the velocity gradient.
 template <int D>
@@ -475,8 +554,9 @@ void Solver<D>::layer_remap() {
   for (auto& w : dual_) {
     if (w.enhanced) continue;  // solved with the standard grid in layer_couple(true)
     for (std::size_t n = 0; n < w.mass.size(); ++n) {
-      w.velocity[n] =
-          w.mass[n] > mass_threshold_ ? Vec<D>(w.momentum[n] / w.mass[n]) : Vec<D>::Zero();
+      const bool filled = w.mass[n] > mass_threshold_;
+      w.velocity[n] = filled ? Vec<D>(w.momentum[n] / w.mass[n]) : Vec<D>::Zero();
+      w.centroid[n] = filled ? Vec<D>(w.centroid[n] / w.mass[n]) : w.position[n];
     }
   }
   layer_walls(&DualWall<D>::velocity, false);
@@ -497,14 +577,7 @@ void Solver<D>::layer_gather_gradient() {
       continue;
     }
     P.velocity_gradient[p] = L;
-    // APIC on the linear boundary basis: C_p = grad v (exact for affine fields, Jiang et al.
-    // 2015 section 5.3) taken from the remapped field, a mass-weighted average, rather than from
-    // v^{n+1}, which sees nearly empty layer nodes at full weight. The remap leaves the old C_p
-    // out (layer_scatter), so an affine field is reproduced up to the offset of each node's
-    // particle centroid, and a lone particle's C_p decays instead of persisting. (On the
-    // standard grid's linear/GIMP kernels the same
-    // choice made the bar impact unstable, so they keep C_p from v^{n+1}.)
-    if (apic) P.affine[p] = L;
+    if (apic) P.affine[p] = layer_affine(w, st, L, P.velocity[p], mass_threshold_);
   }
 }
 

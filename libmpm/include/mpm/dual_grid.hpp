@@ -76,6 +76,9 @@ struct DualWall {
   std::vector<double> mass;
   std::vector<Vec<D>> momentum, force, velocity, velocity_new;
   std::vector<Vec<D>> momentum_new;  ///< Enhanced: p + dt f, the right-hand side of v^{n+1}
+  /// MUSL remap: the mass centroid of the particles each node's remapped velocity comes from
+  /// (where that velocity is the particles', layer_affine() in dual_grid.cpp).
+  std::vector<Vec<D>> centroid;
 
   // Gamma: nodes on the wall, their unit normal into the material, and the part they report to.
   std::vector<int> wall_nodes;
