@@ -310,6 +310,16 @@ nlohmann::json energy_json(const Energies& e) {
       {"kinetic", e.kinetic}, {"strain", e.strain}, {"gravity", e.gravity}, {"total", e.total()}};
 }
 
+// Where the steps' time went (this process only: a resumed run counts from its resume),
+// and the output's (history rows, particle frames, checkpoints).
+nlohmann::json phase_json(const PhaseTimes& p, double output) {
+  return {{"locate", p.locate},           {"particles_to_grid", p.particles_to_grid},
+          {"grid_update", p.grid_update}, {"walls", p.walls},
+          {"coupling", p.coupling},       {"grid_to_particles", p.grid_to_particles},
+          {"stress", p.stress},           {"advect", p.advect},
+          {"steps_total", p.total()},     {"output", output}};
+}
+
 }  // namespace
 
 std::filesystem::path checkpoint_scene(const std::filesystem::path& out_dir) {
@@ -401,6 +411,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   ForcePeaks peaks;
   std::unique_ptr<EnergyGuard> guard;
   double wall_before = 0.0;  // wall-clock seconds of the runs this one continues
+  double output_seconds = 0.0;
   // Written with every particle frame, after it: a resumed run drops what came later.
   const auto checkpoint = [&]() {
     Checkpoint c;
@@ -487,6 +498,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
         failure = "step " + std::to_string(step) + ", t = " + num(t) + ": " + *sim->fault();
         break;
       }
+      const Clock::time_point output_start = Clock::now();
       if (scene.history_interval == 0.0 || t >= next_history - eps || t >= end - eps) {
         const Energies e = sim->energies();
         peaks.add(t, history->row(t, step, dt, *sim, since_history, e));
@@ -507,6 +519,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
         while (next_output <= t + eps) next_output += scene.output_interval;
         checkpoint();
       }
+      output_seconds += seconds_since(output_start);
       progress.update(t, step);
       if (options.halt_after_steps >= 0 && step >= options.halt_after_steps) return kExitOk;
     }
@@ -534,6 +547,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       {"particle_steps_per_second",
        wall_seconds > 0 ? static_cast<double>(sim->particle_count()) * step / wall_seconds : 0.0},
       {"frames_written", writer->frames_written()},
+      {"phase_seconds", phase_json(sim->phase_times(), output_seconds)},
       {"final_energy", energy_json(sim->energies())},
       {"warnings", warnings},
   };

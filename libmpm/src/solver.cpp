@@ -213,10 +213,14 @@ double Solver<D>::stable_dt(double cfl) const {
 
 template <int D>
 void Solver<D>::step(double dt) {
+  lap_start_ = std::chrono::steady_clock::now();
   particles_to_grid();
   update_grid(dt);
+  lap(&PhaseTimes::grid_update);
   apply_walls();
+  lap(&PhaseTimes::walls);
   couple_interfaces();
+  lap(&PhaseTimes::coupling);
   grid_to_particles(dt);
 }
 
@@ -282,10 +286,13 @@ void Solver<D>::scatter(bool with_force) {
 template <int D>
 void Solver<D>::particles_to_grid() {
   grid.clear();
+  lap(&PhaseTimes::particles_to_grid);
   locate_in_layers();
+  lap(&PhaseTimes::locate);
   bin_particles_into_slabs();
   dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true); });
   layer_scatter(true);
+  lap(&PhaseTimes::particles_to_grid);
 }
 
 template <int D>
@@ -488,15 +495,22 @@ void Solver<D>::grid_to_particles(double dt) {
         const double m = grid.mass[n];
         grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
       }
+      lap(&PhaseTimes::grid_to_particles);
       constrain_walls(grid.velocity, false);
+      lap(&PhaseTimes::walls);
       layer_remap();
+      lap(&PhaseTimes::grid_to_particles);
       layer_couple(true);
+      lap(&PhaseTimes::coupling);
       gather_velocity_gradient<Shape>();
       layer_gather_gradient();
     }
   });
+  lap(&PhaseTimes::grid_to_particles);
   update_stress(dt);
+  lap(&PhaseTimes::stress);
   advect_and_check();
+  lap(&PhaseTimes::advect);
 }
 
 template <int D>

@@ -417,6 +417,21 @@ TEST_F(CommandLine, RunsSmallScene) {
   EXPECT_GT(summary.at("steps").get<long>(), 0);
   EXPECT_FALSE(summary.contains("error"));
   EXPECT_NEAR(summary.at("simulated_time").get<double>(), 0.05, 1e-12);
+  // Where the time went: the phases partition the steps, which with the output take part of the
+  // run's wall clock (the rest: loading, setup, the step size, the summary).
+  const json& phases = summary.at("phase_seconds");
+  double sum = 0.0;
+  for (const char* phase : {"locate", "particles_to_grid", "grid_update", "walls", "coupling",
+                            "grid_to_particles", "stress", "advect"}) {
+    const double seconds = phases.at(phase).get<double>();
+    EXPECT_GE(seconds, 0.0) << phase;
+    sum += seconds;
+  }
+  EXPECT_NEAR(phases.at("steps_total").get<double>(), sum, 1e-9 * (1.0 + sum));
+  EXPECT_GT(phases.at("particles_to_grid").get<double>(), 0.0);
+  EXPECT_GT(phases.at("output").get<double>(), 0.0);
+  EXPECT_LE(sum + phases.at("output").get<double>(),
+            summary.at("wall_clock_seconds").get<double>());
 
   const std::string history = read_text(out_dir_ / "history.csv");
   EXPECT_EQ(history.rfind("time,step,dt,kinetic", 0), 0u) << history.substr(0, 80);

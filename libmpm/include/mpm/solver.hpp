@@ -10,6 +10,7 @@
 //
 // make_simulation() hides the dimension behind the Simulation interface for the run loop.
 
+#include <chrono>
 #include <memory>
 #include <optional>
 #include <string>
@@ -29,6 +30,27 @@ struct Energies {
   double strain = 0.0;
   double gravity = 0.0;  ///< -sum m g.x (body forces are not potential energy)
   [[nodiscard]] double total() const { return kinetic + strain + gravity; }
+};
+
+/// Wall-clock seconds spent in each phase of the steps so far (steady clock, summed). The
+/// phases partition step(): locate (which particles are in a boundary layer, and where),
+/// particles to grid (binning and scatter, both grids), grid update, walls (box, sdf and Gamma
+/// conditions), coupling (the Phi and Enhanced solves, the remap's included), grid to particles
+/// (gather, MUSL remap, velocity gradients), stress (the constitutive update), advect (move and
+/// check the particles).
+struct PhaseTimes {
+  double locate = 0.0;
+  double particles_to_grid = 0.0;
+  double grid_update = 0.0;
+  double walls = 0.0;
+  double coupling = 0.0;
+  double grid_to_particles = 0.0;
+  double stress = 0.0;
+  double advect = 0.0;
+  [[nodiscard]] double total() const {
+    return locate + particles_to_grid + grid_update + walls + coupling + grid_to_particles +
+           stress + advect;
+  }
 };
 
 /// Dimension-independent face of a solver, used by the run loop and the command line.
@@ -59,6 +81,8 @@ class Simulation {
   /// The inverse of save_state(); throws std::runtime_error naming the key that does not fit
   /// this scene.
   virtual void restore_state(const Checkpoint& checkpoint) = 0;
+  /// Time per phase of step() since construction (not restored from a checkpoint).
+  [[nodiscard]] virtual const PhaseTimes& phase_times() const = 0;
 };
 
 std::unique_ptr<Simulation> make_simulation(const Scene& scene);
@@ -85,6 +109,7 @@ class Solver final : public Simulation {
   [[nodiscard]] const std::optional<std::string>& fault() const override { return fault_; }
   void save_state(Checkpoint& checkpoint) const override;
   void restore_state(const Checkpoint& checkpoint) override;
+  [[nodiscard]] const PhaseTimes& phase_times() const override { return times_; }
 
   // The phases of a step, public so tests can check each one.
   void particles_to_grid();
@@ -171,6 +196,14 @@ class Solver final : public Simulation {
   double wave_speed_ = 0.0;  ///< max_wave_speed(scene)
   double viscous_dt_ = 0.0;  ///< viscous_dt_limit at step_size_ (CFL number 1)
   std::optional<std::string> fault_;
+  /// Adds the time since the last lap (or the start of the step) to a phase.
+  void lap(double PhaseTimes::*phase) {
+    const auto now = std::chrono::steady_clock::now();
+    times_.*phase += std::chrono::duration<double>(now - lap_start_).count();
+    lap_start_ = now;
+  }
+  PhaseTimes times_;
+  std::chrono::steady_clock::time_point lap_start_ = std::chrono::steady_clock::now();
 };
 
 }  // namespace mpm
