@@ -491,10 +491,12 @@ void Solver<D>::grid_to_particles(double dt) {
       // and take the strain rate from that smoother field (both grids, coupled again on Phi).
       std::fill(grid.momentum.begin(), grid.momentum.end(), Vec<D>::Zero());
       scatter<Shape>(false);
-      for (std::size_t n = 0; n < grid.size(); ++n) {
-        const double m = grid.mass[n];
-        grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
-      }
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, grid.size(), 4096), [&](const auto& r) {
+        for (std::size_t n = r.begin(); n != r.end(); ++n) {
+          const double m = grid.mass[n];
+          grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
+        }
+      });
       lap(&PhaseTimes::grid_to_particles);
       constrain_walls(grid.velocity, false);
       lap(&PhaseTimes::walls);
