@@ -518,40 +518,43 @@ void Solver<D>::layer_gather(double dt) {
   const bool apic = scene_.transfer == Transfer::apic;
   const bool usl = scene_.update == UpdateScheme::usl;
   const double alpha = scene_.flip_blend;
-  for (std::size_t p = 0; p < P.size(); ++p) {
-    if (P.layer_wall[p] < 0) continue;
-    const DualWall<D>& w = dual_[P.layer_wall[p]];
-    const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
-    Vec<D> value = Vec<D>::Zero(), increment = Vec<D>::Zero();
-    Mat<D> L = Mat<D>::Zero();
-    for (int k = 0; k < st.count; ++k) {
-      const int n = st.node[k];
-      value += st.N[k] * w.velocity_new[n];
-      increment += st.N[k] * (w.velocity_new[n] - w.velocity[n]);
-      L += w.velocity_new[n] * st.dN[k].transpose();
-    }
-    if (w.enhanced) {
-      // The enhancement adds to what gather() took from the standard grid.
-      if (apic) {
-        // C_p stays the standard grid's: the enhancement is the wall's sharp layer, which the
-        // standard grid's affine transfer cannot carry (its scatter leaves C_p out too).
-        P.velocity[p] += value;
-      } else {
-        P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
+  // Each particle reads the nodes and writes only itself: in parallel.
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
+    for (std::size_t p = r.begin(); p != r.end(); ++p) {
+      if (P.layer_wall[p] < 0) continue;
+      const DualWall<D>& w = dual_[P.layer_wall[p]];
+      const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
+      Vec<D> value = Vec<D>::Zero(), increment = Vec<D>::Zero();
+      Mat<D> L = Mat<D>::Zero();
+      for (int k = 0; k < st.count; ++k) {
+        const int n = st.node[k];
+        value += st.N[k] * w.velocity_new[n];
+        increment += st.N[k] * (w.velocity_new[n] - w.velocity[n]);
+        L += w.velocity_new[n] * st.dN[k].transpose();
       }
-      P.displacement[p] += dt * value;
-      if (usl) P.velocity_gradient[p] += L;
-      continue;
+      if (w.enhanced) {
+        // The enhancement adds to what gather() took from the standard grid.
+        if (apic) {
+          // C_p stays the standard grid's: the enhancement is the wall's sharp layer, which the
+          // standard grid's affine transfer cannot carry (its scatter leaves C_p out too).
+          P.velocity[p] += value;
+        } else {
+          P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
+        }
+        P.displacement[p] += dt * value;
+        if (usl) P.velocity_gradient[p] += L;
+        continue;
+      }
+      if (apic) {
+        P.velocity[p] = value;
+        if (usl) P.affine[p] = L;  // MUSL: from the remapped field, layer_gather_gradient()
+      } else {
+        P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
+      }
+      P.displacement[p] = dt * value;
+      if (usl) P.velocity_gradient[p] = L;
     }
-    if (apic) {
-      P.velocity[p] = value;
-      if (usl) P.affine[p] = L;  // MUSL: from the remapped field, layer_gather_gradient()
-    } else {
-      P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
-    }
-    P.displacement[p] = dt * value;
-    if (usl) P.velocity_gradient[p] = L;
-  }
+  });
 }
 
 template <int D>
@@ -572,19 +575,21 @@ template <int D>
 void Solver<D>::layer_gather_gradient() {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
-  for (std::size_t p = 0; p < P.size(); ++p) {
-    if (P.layer_wall[p] < 0) continue;
-    const DualWall<D>& w = dual_[P.layer_wall[p]];
-    const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
-    Mat<D> L = Mat<D>::Zero();
-    for (int k = 0; k < st.count; ++k) L += w.velocity[st.node[k]] * st.dN[k].transpose();
-    if (w.enhanced) {
-      P.velocity_gradient[p] += L;  // on top of the standard grid's
-      continue;
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
+    for (std::size_t p = r.begin(); p != r.end(); ++p) {
+      if (P.layer_wall[p] < 0) continue;
+      const DualWall<D>& w = dual_[P.layer_wall[p]];
+      const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
+      Mat<D> L = Mat<D>::Zero();
+      for (int k = 0; k < st.count; ++k) L += w.velocity[st.node[k]] * st.dN[k].transpose();
+      if (w.enhanced) {
+        P.velocity_gradient[p] += L;  // on top of the standard grid's
+        continue;
+      }
+      P.velocity_gradient[p] = L;
+      if (apic) P.affine[p] = layer_affine(w, st, L, P.velocity[p], mass_threshold_);
     }
-    P.velocity_gradient[p] = L;
-    if (apic) P.affine[p] = layer_affine(w, st, L, P.velocity[p], mass_threshold_);
-  }
+  });
 }
 
 #define MPM_DUAL_GRID_MEMBERS(D)                                                  \
