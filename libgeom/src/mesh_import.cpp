@@ -589,31 +589,35 @@ class ChildReader {
     }
   }
 
-  // False at end of stream (the child exited or died) before any byte of `n`.
-  bool read(void* data, std::size_t n) {
-    char* p = static_cast<char*>(data);
-    const std::size_t want = n;
-    while (n > 0) {
+  // Up to n bytes as they arrive (0 at the end of the stream: the child exited or died),
+  // watching the child's memory and run time while it waits.
+  std::size_t some(void* data, std::size_t n) {
+    for (;;) {
       pollfd pfd{fd_, POLLIN, 0};
       const int ready = ::poll(&pfd, 1, 20);
       watch();
       if (ready < 0 && errno != EINTR) fail(file_, "cannot wait for the mesh importer");
       if (ready <= 0) continue;
-      const ssize_t r = ::read(fd_, p, n);
+      const ssize_t r = ::read(fd_, data, n);
       if (r < 0 && errno == EINTR) continue;
-      if (r <= 0) {
-        if (n == want) return false;
-        died("stopped in the middle of its answer");
-      }
-      p += r;
-      n -= static_cast<std::size_t>(r);
+      return r > 0 ? static_cast<std::size_t>(r) : 0;
     }
-    return true;
+  }
+
+  // Exactly n bytes; the stream ending before them is the child's failure.
+  void exact(void* data, std::size_t n) {
+    char* p = static_cast<char*>(data);
+    while (n > 0) {
+      const std::size_t got = some(p, n);
+      if (got == 0) died("stopped in the middle of its answer");
+      p += got;
+      n -= got;
+    }
   }
 
   std::uint64_t u64() {
     std::uint64_t v = 0;
-    if (!read(&v, sizeof v)) died("stopped in the middle of its answer");
+    exact(&v, sizeof v);
     return v;
   }
 
@@ -626,8 +630,8 @@ class ChildReader {
 
   std::string rest() {
     std::string text;
-    char c;
-    while (read(&c, 1)) text.push_back(c);
+    char buffer[4096];
+    while (const std::size_t got = some(buffer, sizeof buffer)) text.append(buffer, got);
     return text;
   }
 
@@ -700,7 +704,7 @@ void read_soup_isolated(const fs::path& file, const ImportOptions& options, Soup
   ::close(fds[1]);
   ChildReader in(pid, fds[0], file, limits_for(file));
   char status = 0;
-  if (!in.read(&status, 1)) {
+  if (in.some(&status, 1) == 0) {
     in.finish();
     in.died("ended without an answer");
   }
@@ -714,26 +718,18 @@ void read_soup_isolated(const fs::path& file, const ImportOptions& options, Soup
   report.input_triangles = in.u64();
   report.skipped_primitives = in.u64();
   soup.points.resize(in.count(sizeof(Eigen::Vector3d)));
-  if (!in.read(soup.points.data(), soup.points.size() * sizeof(Eigen::Vector3d)) &&
-      !soup.points.empty()) {
-    in.died("stopped in the middle of its answer");
-  }
+  in.exact(soup.points.data(), soup.points.size() * sizeof(Eigen::Vector3d));
   soup.faces.resize(in.count(sizeof(soup.faces[0]) + sizeof(int)));
   soup.face_part.resize(soup.faces.size());
-  if (!soup.faces.empty() &&
-      (!in.read(soup.faces.data(), soup.faces.size() * sizeof(soup.faces[0])) ||
-       !in.read(soup.face_part.data(), soup.face_part.size() * sizeof(int)))) {
-    in.died("stopped in the middle of its answer");
+  in.exact(soup.faces.data(), soup.faces.size() * sizeof(soup.faces[0]));
+  in.exact(soup.face_part.data(), soup.face_part.size() * sizeof(int));
+  // Part names only: the name -> index map serves collect(), in the child.
+  soup.part_names.resize(in.count(sizeof(std::uint64_t)));
+  for (std::string& name : soup.part_names) {
+    name.resize(in.count(1));
+    in.exact(name.data(), name.size());
   }
-  const std::size_t parts = in.count(sizeof(std::uint64_t));
-  for (std::size_t k = 0; k < parts; ++k) {
-    std::string name(in.count(1), '\0');
-    if (!name.empty() && !in.read(name.data(), name.size())) {
-      in.died("stopped in the middle of its answer");
-    }
-    soup.part_of_name.emplace(name, static_cast<int>(soup.part_names.size()));
-    soup.part_names.push_back(std::move(name));
-  }
+  const std::size_t parts = soup.part_names.size();
   in.finish();
   // The child checked these; a soup that breaks them did not come from it.
   for (std::size_t f = 0; f < soup.faces.size(); ++f) {

@@ -192,7 +192,7 @@ void Solver<D>::layer_scatter(bool with_force) {
       }
     }
     std::fill(w.momentum.begin(), w.momentum.end(), Vec<D>::Zero());
-    if (!with_force) std::fill(w.centroid.begin(), w.centroid.end(), Vec<D>::Zero());
+    if (!with_force && !w.enhanced) std::fill(w.centroid.begin(), w.centroid.end(), Vec<D>::Zero());
   }
   if (dual_.empty()) return;
   // Few particles live in layers; a serial loop keeps the scatter free of races.
@@ -227,16 +227,18 @@ void Solver<D>::layer_scatter(bool with_force) {
       window = w.touch_window[static_cast<std::size_t>(P.layer_cell[p])] + half;
     }
     // The remap's nodal velocity is that of the particles at their centroid, which
-    // layer_gather_gradient() fits at: the particle's point of the isoparametric map.
+    // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced keeps the
+    // standard grid's C_p and has no use for it).
+    const bool centroids = !with_force && !w.enhanced;
     Vec<D> at = Vec<D>::Zero();
-    if (!with_force) {
+    if (centroids) {
       for (int k = 0; k < st.count; ++k) at += st.N[k] * w.position[st.node[k]];
     }
     for (int k = 0; k < st.count; ++k) {
       const int node = st.node[k];
       const double N = st.N[k];
       w.momentum[node] += N * m * (v + C * (w.position[node] - P.position[p]));
-      if (!with_force) w.centroid[node] += N * m * at;
+      if (centroids) w.centroid[node] += N * m * at;
       if (with_force) {
         w.mass[node] += N * m;
         w.force[node] += vs * st.dN[k] + N * mb;
@@ -278,6 +280,19 @@ void Solver<D>::layer_update(double dt) {
   }
 }
 
+namespace {
+
+// A boundary node the wall condition acts on: on Gamma, carrying mass, and (separable walls) in
+// contact. layer_walls() constrains these; layer_affine() leaves them out of the C_p fit.
+template <int D>
+bool held_by_wall(const DualWall<D>& w, int node, double mass_threshold) {
+  if (w.wall_index_of_node[node] < 0 || w.mass[node] <= mass_threshold) return false;
+  // Separable: no contact until the material touches the wall at this node.
+  return !(w.spec->contact.separable && w.touch_gap[node] > 0.0);
+}
+
+}  // namespace
+
 // Wall conditions on Gamma in each node's own frame (normal into the material).
 template <int D>
 void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool record) {
@@ -288,10 +303,8 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
         [&](const auto& condition) {
           for (std::size_t i = 0; i < w.wall_nodes.size(); ++i) {
             const int n = w.wall_nodes[i];
+            if (!held_by_wall(w, n, mass_threshold_)) continue;
             const double m = w.mass[n];
-            if (m <= mass_threshold_) continue;
-            // Separable: no contact until the material touches the wall at this node.
-            if (w.spec->contact.separable && w.touch_gap[n] > 0.0) continue;
             const Vec<D> before = v[n];
             v[n] = constrain_velocity<D>(condition, w.spec->contact.separable, w.wall_normal[i],
                                          before);
@@ -459,15 +472,13 @@ namespace {
 template <int D>
 Mat<D> layer_affine(const DualWall<D>& w, const AlphaStencil<D>& st, const Mat<D>& gradient,
                     const Vec<D>& velocity, double mass_threshold) {
-  const bool separable = w.spec->contact.separable;
   std::array<double, 6> weight{};
   double total = 0.0;
   Vec<D> x_bar = Vec<D>::Zero(), v_bar = Vec<D>::Zero(), at = Vec<D>::Zero();
   for (int k = 0; k < st.count; ++k) {
     const int n = st.node[k];
     at += st.N[k] * w.position[n];
-    const bool held = w.wall_index_of_node[n] >= 0 && !(separable && w.touch_gap[n] > 0.0);
-    if (w.mass[n] <= mass_threshold || held) continue;
+    if (w.mass[n] <= mass_threshold || held_by_wall(w, n, mass_threshold)) continue;
     weight[k] = st.N[k];
     total += weight[k];
     x_bar += weight[k] * w.centroid[n];

@@ -13,7 +13,13 @@ rm -rf "$artifacts"
 mkdir -p "$corpus" "$artifacts"
 "$fuzzer" "$corpus" "$@" -fork=1 -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 \
   -max_total_time="$seconds" -rss_limit_mb=4096 -timeout=10 -artifact_prefix="$artifacts/"
+fuzzer_status=$?
 status=0
+# A failure that left nothing to judge (the fuzzer did not start, or died outside an input).
+if [ $fuzzer_status -ne 0 ] && [ -z "$(ls -A "$artifacts")" ]; then
+  echo "FINDING: $fuzzer exited with $fuzzer_status and wrote no artifact"
+  status=1
+fi
 for f in "$artifacts"/*; do
   [ -e "$f" ] || continue
   if [[ $(basename "$f") == oom-* && $accept_oom == 1 ]] &&
