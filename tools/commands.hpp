@@ -37,4 +37,22 @@ struct VerifyArgs {
 /// `mpm verify`: 0 when every selected check passes, 1 when one fails, 2 bad input.
 int verify_command(const VerifyArgs& args);
 
+struct BenchArgs {
+  std::string kind;                  ///< "accuracy" or "stability"
+  std::vector<std::string> cases;    ///< accuracy: series names; stability: parts (empty: all)
+  std::vector<std::string> methods;  ///< empty: every method the configuration lists
+  bool smoke = false;                ///< the few configurations ctest runs
+  std::filesystem::path config;      ///< data/bench/<kind>.json
+  std::filesystem::path csv_file;
+  std::filesystem::path plot_file;  ///< PNG, drawn by scripts/bench_plot.py
+  std::filesystem::path failures;   ///< stability: where failing scenes are written
+  std::filesystem::path scripts_dir;
+  unsigned seed = 1;
+  int runs = 0;  ///< stability: random wall placements (0: the configuration's count)
+};
+
+/// `mpm bench accuracy|stability`: 0 when no run failed (a numerical fault or non-finite error;
+/// stability: any failure class), 1 when one did, 2 bad input, 4 cannot write.
+int bench_command(const BenchArgs& args);
+
 }  // namespace mpm::tools

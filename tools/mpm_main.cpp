@@ -90,6 +90,33 @@ int main(int argc, char** argv) {
   verify->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
       ->check(CLI::Range(1, 1024));
 
+  mpm::tools::BenchArgs bench_args;
+  bench_args.scripts_dir = MPM_SCRIPTS_DIR;
+  bench_args.failures = "bench_failures";
+  CLI::App* bench = app.add_subcommand(
+      "bench", "Benchmarks: run time against error (accuracy), numerical stress (stability)");
+  bench->add_option("kind", bench_args.kind, "accuracy or stability")
+      ->required()
+      ->check(CLI::IsMember({"accuracy", "stability"}));
+  bench->add_option("--case", bench_args.cases,
+                    "accuracy: series; stability: part (throws, long, cfl, crossing); repeatable");
+  bench->add_option("--method", bench_args.methods,
+                    "Wall method: grid, sdf, one-way, mortar, enhanced (repeatable)");
+  bench->add_flag("--smoke", bench_args.smoke, "The few configurations the test suite runs");
+  bench
+      ->add_option("--config", bench_args.config,
+                   "Configuration (default data/bench/accuracy.json or stability.json)")
+      ->check(CLI::ExistingFile);
+  bench->add_option("--csv", bench_args.csv_file, "Write every run as a CSV row");
+  bench->add_option("--plot", bench_args.plot_file, "Draw the PNG (python3-matplotlib)");
+  bench->add_option("--failures", bench_args.failures,
+                    "stability: folder for the scenes of failing runs (default bench_failures)");
+  bench->add_option("--seed", bench_args.seed, "stability: random seed of the wall placements");
+  bench->add_option("--runs", bench_args.runs, "stability: number of random wall placements")
+      ->check(CLI::Range(1, 100000));
+  bench->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
+      ->check(CLI::Range(1, 1024));
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -111,6 +138,12 @@ int main(int argc, char** argv) {
     return mpm::tools::prep_command(prep_args);
   }
   if (*verify) return mpm::tools::verify_command(verify_args);
+  if (*bench) {
+    if (bench_args.config.empty()) {
+      bench_args.config = std::filesystem::path(MPM_BENCH_DIR) / (bench_args.kind + ".json");
+    }
+    return mpm::tools::bench_command(bench_args);
+  }
   if (*run) {
     try {
       if (!resume_dir.empty()) {
