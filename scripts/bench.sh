@@ -18,10 +18,10 @@ status=0
 for kind in $kinds; do
   build/bin/mpm bench "$kind" --csv "docs/benchmarks_$kind.csv" "$@" || status=$?
   if [ "$kind" = accuracy ]; then
-    python3 scripts/bench_plot.py accuracy docs/benchmarks_accuracy.csv \
+    /usr/bin/python3 scripts/bench_plot.py accuracy docs/benchmarks_accuracy.csv \
       docs/img/benchmarks_accuracy.png --table docs/benchmarks_pareto.md
   else
-    python3 scripts/bench_plot.py stability docs/benchmarks_stability.csv \
+    /usr/bin/python3 scripts/bench_plot.py stability docs/benchmarks_stability.csv \
       docs/img/benchmarks_stability.png
   fi
 done

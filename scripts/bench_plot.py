@@ -166,14 +166,14 @@ def stability(args):
 
     ax = axes[1][0]
     cfl = [r for r in rows if r["part"] == "cfl"]
-    shapes = sorted({r["shape"] for r in cfl})
+    shapes = sorted({r["kernel"] for r in cfl})
     methods = [m for m in METHODS if any(r["method"] == m for r in cfl)]
     table = []
     for m in methods:
         row = []
         for s in shapes:
             runs = sorted((number(r["cfl"]), r["failed"] == "1") for r in cfl
-                          if r["method"] == m and r["shape"] == s)
+                          if r["method"] == m and r["kernel"] == s)
             largest = 0.0
             for c, failed in runs:
                 if failed:
@@ -190,6 +190,7 @@ def stability(args):
         ax.set_yticks(range(len(methods)), methods)
         fig.colorbar(im, ax=ax)
     ax.set_title("largest stable CFL number (every smaller one passes too)")
+    ax.set_xlabel("shape function / transfer")
 
     ax = axes[1][1]
     long_runs = [r for r in rows if r["part"] == "long"]

@@ -10,7 +10,7 @@
 //   out so that `mpm run` reruns it alone.
 //   throws:   random wall placements (offset, orientation; 2D and 3D), blocks thrown at the wall
 //   long:     10^5 steps of a block resting on a frictional incline: energy drift, creep
-//   cfl:      the largest stable CFL number per wall method and shape function
+//   cfl:      the largest stable CFL number per wall method, shape function and transfer
 //   crossing: a disk rolling on an incline, its particles crossing Phi (layer <-> bulk) each step
 
 #include <unistd.h>
@@ -69,7 +69,11 @@ bool selected(const std::vector<std::string>& filter, const std::string& name) {
 /// Draws the plot with scripts/bench_plot.py; false (and a message) when it cannot.
 bool plot(const BenchArgs& args, const std::filesystem::path& csv) {
   const std::filesystem::path script = args.scripts_dir / "bench_plot.py";
-  const std::string command = "python3 '" + script.string() + "' " + args.kind + " '" +
+  // Debian's own interpreter, which the python3-matplotlib package serves (another python3 may
+  // come first on PATH).
+  const std::string python =
+      std::filesystem::exists("/usr/bin/python3") ? "/usr/bin/python3" : "python3";
+  const std::string command = python + " '" + script.string() + "' " + args.kind + " '" +
                               csv.string() + "' '" + args.plot_file.string() + "'";
   if (std::system(command.c_str()) != 0) {
     std::cerr << "mpm bench: --plot " << args.plot_file.string() << ": " << script.string()
@@ -231,7 +235,7 @@ struct Limits {
 
 /// What one stress run did.
 struct Outcome {
-  std::string part, method, shape, detail, fault, scene_file;
+  std::string part, method, kernel, detail, fault, scene_file;  // kernel: shape/transfer
   int dimension = 2;
   int id = 0;
   double cfl = 0.0;
@@ -299,9 +303,9 @@ struct Monitor {
 
 /// A scene with a flat wall `plane` (dual-grid, sdf, or for "grid" the box face below the
 /// material: the plane must then be y = 0 in 2D, z = 0 in 3D), a grid box spanning the plane's
-/// extent and `height` above it, and `body`.
+/// extent and `height` above it, and `body`; `kernel` is "shape function/transfer" (MUSL).
 json plane_doc(int dim, const Plane& plane, double height, const std::string& method, double h,
-               const std::string& shape, double mu, const json& body, const json& material,
+               const std::string& kernel, double mu, const json& body, const json& material,
                const Eigen::Vector3d& gravity, double end, double cfl,
                const std::filesystem::path& mesh_file) {
   Eigen::Vector3d lo = plane.origin, hi = plane.origin;
@@ -323,8 +327,8 @@ json plane_doc(int dim, const Plane& plane, double height, const std::string& me
   }
   json doc = {{"dimension", dim},
               {"grid", {{"min", mn}, {"max", mx}, {"spacing", h}}},
-              {"shape_function", shape},
-              {"scheme", {{"update", "musl"}, {"transfer", "apic"}}},
+              {"shape_function", kernel.substr(0, kernel.find('/'))},
+              {"scheme", {{"update", "musl"}, {"transfer", kernel.substr(kernel.find('/') + 1)}}},
               {"gravity", g},
               {"materials", json::array({material})},
               {"bodies", json::array({body})},
@@ -488,9 +492,9 @@ class Stability {
       extra_text += buffer;
     }
     std::printf(
-        "%-8s %4d %-9s %-8s %dD cfl %-4.2g %7lld steps %7.2f s  closest %6.3f h  pen %6.3f h  "
+        "%-8s %4d %-9s %-13s %dD cfl %-4.2g %7lld steps %7.2f s  closest %6.3f h  pen %6.3f h  "
         "dE %9.2e%s%s%s%s\n",
-        o.part.c_str(), o.id, o.method.c_str(), o.shape.c_str(), o.dimension, o.cfl,
+        o.part.c_str(), o.id, o.method.c_str(), o.kernel.c_str(), o.dimension, o.cfl,
         static_cast<long long>(o.steps), o.seconds, o.closest, o.penetration, o.energy_growth,
         extra_text.c_str(), o.failed() ? "  FAIL " : "", o.failed() ? join(o.reasons).c_str() : "",
         o.fault.empty() ? "" : ("  (" + o.fault + ")").c_str());
@@ -576,12 +580,12 @@ class Stability {
       const double height = gap + size.z() + 1.2 * vn * end + 4 * h;
       const json material = elastic(1000.0, E, 0.3, "neo_hookean");
       const json body = block_on_plane(dim, plane, size, gap, 0.0, v, 2);
-      const json doc = plane_doc(dim, plane, height, method, h, "bspline2", mu, body, material, g,
-                                 end, 0.5, work_ / ("throw_" + std::to_string(i) + ".obj"));
+      const json doc = plane_doc(dim, plane, height, method, h, "bspline2/apic", mu, body, material,
+                                 g, end, 0.5, work_ / ("throw_" + std::to_string(i) + ".obj"));
       Outcome o;
       o.part = "throws";
       o.method = method;
-      o.shape = "bspline2";
+      o.kernel = "bspline2/apic";
       o.dimension = dim;
       o.cfl = 0.5;
       char detail[256];
@@ -626,12 +630,12 @@ class Stability {
       const Eigen::Vector3d size(0.3, 0.0, 0.15);
       const json body = block_on_plane(2, plane, size, 1e-6, 0.0, Eigen::Vector3d::Zero(), 2);
       const json doc =
-          plane_doc(2, plane, 0.4, method, h, "bspline2", mu, body,
+          plane_doc(2, plane, 0.4, method, h, "bspline2/apic", mu, body,
                     elastic(1000.0, 2e6, 0.3, "neo_hookean"), g, 1e6, 0.5, work_ / "long.obj");
       Outcome o;
       o.part = "long";
       o.method = method;
-      o.shape = "bspline2";
+      o.kernel = "bspline2/apic";
       o.cfl = 0.5;
       char detail[128];
       std::snprintf(detail, sizeof detail, "theta %g mu %g (tan %.3f) %lld steps", theta, mu,
@@ -659,11 +663,17 @@ class Stability {
     const std::string where = args_.config.string() + ": /cfl";
     const json p = part("cfl");
     const auto numbers = config_value<std::vector<double>>(p, "cfl", where);
-    const auto shapes = config_value<std::vector<std::string>>(p, "shapes", where);
+    // "shape function/transfer": the CFL limit depends on both.
+    const auto kernels = config_value<std::vector<std::string>>(p, "kernels", where);
+    for (const std::string& k : kernels) {
+      if (k.find('/') == std::string::npos) {
+        throw ConfigError(where + "/kernels: \"" + k + "\" is not \"shape/transfer\"");
+      }
+    }
     const double theta = config_value<double>(p, "angle", where);
     const double h = config_value<double>(p, "spacing", where);
     for (const std::string& method : methods(p, where)) {
-      for (const std::string& shape : shapes) {
+      for (const std::string& kernel : kernels) {
         double largest = 0.0;
         bool stable = true;
         for (const double cfl : numbers) {
@@ -680,12 +690,12 @@ class Stability {
           const double gap = 2.0 * h, end = 0.25;
           const json body = block_on_plane(2, plane, size, gap, -0.3, v, 2);
           const json doc =
-              plane_doc(2, plane, 1.2, method, h, shape, 0.3, body,
+              plane_doc(2, plane, 1.2, method, h, kernel, 0.3, body,
                         elastic(1000.0, 2e6, 0.3, "neo_hookean"), g, end, cfl, work_ / "cfl.obj");
           Outcome o;
           o.part = "cfl";
           o.method = method;
-          o.shape = shape;
+          o.kernel = kernel;
           o.cfl = cfl;
           o.detail = "theta " + std::to_string(theta) + " v (-3 n + 1 s) mu 0.3";
           Monitor mon;
@@ -699,7 +709,7 @@ class Stability {
           if (outcomes_.back().failed()) stable = false;
           if (stable) largest = cfl;
         }
-        largest_cfl_[method + " " + shape] = largest;
+        largest_cfl_[method + " " + kernel] = largest;
       }
     }
   }
@@ -739,7 +749,7 @@ class Stability {
         Outcome o;
         o.part = "crossing";
         o.method = method;
-        o.shape = "bspline2";
+        o.kernel = "bspline2/apic";
         o.cfl = 0.5;
         o.detail = "disk R 0.2 on " + std::to_string(theta) + " degrees, mu " + std::to_string(mu);
         Monitor mon;
@@ -800,12 +810,12 @@ class Stability {
       std::filesystem::path csv = args_.csv_file;
       if (csv.empty()) csv = work_ / "stability.csv";
       std::ofstream out(csv);
-      out << "part,id,method,shape,dimension,cfl,steps,seconds,closest_h,penetration_h,energy_"
+      out << "part,id,method,kernel,dimension,cfl,steps,seconds,closest_h,penetration_h,energy_"
              "growth,"
              "energy_drift,creep_h,crossings_per_step,error,failed,reasons,fault,detail,scene\n";
       out.precision(9);
       for (const Outcome& o : outcomes_) {
-        out << o.part << ',' << o.id << ',' << o.method << ',' << o.shape << ',' << o.dimension
+        out << o.part << ',' << o.id << ',' << o.method << ',' << o.kernel << ',' << o.dimension
             << ',' << o.cfl << ',' << o.steps << ',' << o.seconds << ',' << o.closest << ','
             << o.penetration << ',' << o.energy_growth << ',' << o.energy_drift << ',' << o.creep
             << ',' << o.crossings << ',' << o.error << ',' << (o.failed() ? 1 : 0) << ','

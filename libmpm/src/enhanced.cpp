@@ -415,11 +415,13 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
 
   bool ok = true;
   if (constrained && k > 0 && !record) {
-    // The MUSL remap: the contact states (and friction loads) the step's own solve settled on,
-    // so the strain rate sees the same wall the forces did.
+    // The MUSL remap: the contact states the step's own solve settled on, so the strain rate
+    // sees the same wall the forces did. Not its friction loads: the remapped velocities come
+    // from particles that have already taken them, and a load is an impulse, not a constraint:
+    // applied again, every sliding node would take its friction twice in the strain rate (a
+    // block resting on a frictional incline slowly crushed itself, and gained energy, so).
     if (e.state.size() == static_cast<std::size_t>(k)) {
       for (Eigen::Index i = 0; i < k; ++i) state[i] = static_cast<Contact>(e.state[i]);
-      load = e.load;
     }
     ok = solve();
   } else if (constrained && k > 0) {
@@ -514,7 +516,6 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
     }
     e.state.assign(static_cast<std::size_t>(k), 0);
     for (Eigen::Index i = 0; i < k; ++i) e.state[i] = static_cast<unsigned char>(state[i]);
-    e.load = load;
   }
   for (Eigen::Index r = 0; r < na; ++r) va[e.a_rows[r]] = vna.row(r).transpose();
   for (Eigen::Index c = 0; c < ns; ++c) valpha[e.alpha_cols[c]] = vs.row(c).transpose();

@@ -405,6 +405,14 @@ int run_scene(const Scene& scene, const RunOptions& options) {
         "APIC with the linear or GIMP kernel takes the affine matrix from nearly empty nodes at "
         "full weight and is prone to the cell-crossing instability; prefer bspline2 or FLIP");
   }
+  for (const DualWallSpec& wall : scene.dual_walls) {
+    if (wall.method != CouplingMethod::one_way) continue;
+    warnings.emplace_back(
+        "wall \"" + wall.name +
+        "\": one-way coupling gives the bulk the layer's velocity on Phi with no reaction on the "
+        "layer, so it does not conserve momentum or energy (docs/benchmarks.md: thrown blocks "
+        "gained energy); prefer mortar");
+  }
   for (const auto& w : warnings) std::cerr << "mpm: warning: " << w << '\n';
   std::optional<std::string> failure;
   Progress progress(end, options.quiet);

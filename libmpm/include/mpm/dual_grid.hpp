@@ -56,13 +56,11 @@ struct EnhancedState {
   bool schur_factored = false;        ///< schur_solver holds a valid factorisation (maybe older)
   bool schur_refine = false;          ///< this step's K is solved by refinement
   Eigen::SparseMatrix<double> kkt_matrix;  ///< this step's contact matrix (full storage)
-  /// Contact state and friction impulse per multiplier from the step's solve, reused by the
-  /// MUSL remap.
+  /// Contact state per multiplier from the step's solve, reused by the MUSL remap.
   std::vector<unsigned char> state;
   /// Final contact state per wall multiplier (all of them, 0xFF: not active) of the last step:
   /// the next step's active set starts from it.
   std::vector<unsigned char> previous_state;
-  Eigen::Matrix<double, Eigen::Dynamic, D> load;
 };
 
 template <int D>
