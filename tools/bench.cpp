@@ -714,8 +714,11 @@ class Stability {
     }
   }
 
-  // (4) A disk rolling down an incline (mu >= tan(theta) / 3): particles keep crossing Phi
-  // between the layer and the bulk. Exact: d = g sin(theta) t^2 / 3, energy kept.
+  // (4) Particles crossing Phi between the layer and the bulk: a disk turning on a wall keeps
+  // carrying its particles into and out of the layer. Two scenes with exact answers: a disk
+  // rolling down an incline (mu >= tan(theta) / 3: d = g sin(theta) t^2 / 3), and a "bowling"
+  // disk launched along a floor at an angle to the grid at v0 without spin, which slides while
+  // friction spins it up and rolls at 2 v0 / 3 from t* = v0 / (3 mu g) on. Energy can only fall.
   void crossing() {
     const std::string where = args_.config.string() + ": /crossing";
     const json p = part("crossing");
@@ -723,73 +726,117 @@ class Stability {
     const double end = config_value<double>(p, "time", where);
     const double tolerance = config_value<double>(p, "tolerance", where);
     const double mu = config_value<double>(p, "friction", where);
-    const double R = 0.2;
-    for (const double theta : config_value<std::vector<double>>(p, "angles", where)) {
-      const double th = theta * kPi / 180.0;
-      if (mu < std::tan(th) / 3.0) throw ConfigError(where + "/friction: the disk would slip");
-      for (const std::string& method : methods(p, where)) {
+    const double R = 0.2, m = 1000.0 * kPi * R * R;
+    auto disk = [&](const Eigen::Vector3d& c, const Eigen::Vector3d& v) {
+      return json{{"material", "m"},
+                  {"shape", {{"type", "disk"}, {"center", vec({c.x(), c.y()})}, {"radius", R}}},
+                  {"particles_per_cell", 4},
+                  {"velocity", vec({v.x(), v.y()})}};
+    };
+    for (const std::string& method : methods(p, where)) {
+      for (const double theta : config_value<std::vector<double>>(p, "angles", where)) {
+        const double th = theta * kPi / 180.0;
+        if (mu < std::tan(th) / 3.0) throw ConfigError(where + "/friction: the disk would slip");
         const Frame2 f = incline_frame(theta, method);
-        const Eigen::Vector2d c = f.origin + 0.4 * f.down + (R + 1e-6) * f.normal;
-        const json body = {
-            {"material", "m"},
-            {"shape", {{"type", "disk"}, {"center", vec({c.x(), c.y()})}, {"radius", R}}},
-            {"particles_per_cell", 4}};
-        json doc = incline_doc_2d(f, theta, method, h, 0.0, 2.0, body, mu, end,
-                                  {{"update", "musl"}, {"transfer", "apic"}});
-        doc["time"]["cfl"] = 0.5;
         Plane plane;
-        plane.origin = Eigen::Vector3d(f.origin.x(), f.origin.y(), 0.0) +
-                       1.0 * Eigen::Vector3d(f.down.x(), f.down.y(), 0.0);
         plane.normal = Eigen::Vector3d(f.normal.x(), f.normal.y(), 0.0);
         plane.s = Eigen::Vector3d(f.down.x(), f.down.y(), 0.0);
         plane.t = Eigen::Vector3d::Zero();
+        plane.origin = Eigen::Vector3d(f.origin.x(), f.origin.y(), 0.0) + 1.0 * plane.s;
         plane.extent = 1.0;
+        const Eigen::Vector3d c = plane.origin - 0.6 * plane.s + (R + 1e-6) * plane.normal;
+        json doc = incline_doc_2d(f, theta, method, h, 0.0, 2.0, disk(c, Eigen::Vector3d::Zero()),
+                                  mu, end, {{"update", "musl"}, {"transfer", "apic"}});
+        doc["time"]["cfl"] = 0.5;
         const Eigen::Vector3d g(doc["gravity"][0].get<double>(), doc["gravity"][1].get<double>(),
                                 0.0);
-        Outcome o;
-        o.part = "crossing";
-        o.method = method;
-        o.kernel = "bspline2/apic";
-        o.cfl = 0.5;
-        o.detail = "disk R 0.2 on " + std::to_string(theta) + " degrees, mu " + std::to_string(mu);
-        Monitor mon;
-        mon.plane = plane;
-        mon.gravity = g;
-        mon.h = h;
-        mon.margin = h;
-        const double m = 1000.0 * kPi * R * R;
-        mon.scale = m * kGravity * 2.0 * R;
-        std::vector<int> owner;
-        std::int64_t crossings = 0, steps_with = 0, steps = 0;
-        double travel = 0.0, mass = 0.0;
-        const Observer count = [&](Simulation& sim, double, double dt) {
-          if (mass == 0.0) mass = total_mass(sim);
-          travel += sim.momentum().dot(plane.s) / mass * dt;
-          auto* solver = dynamic_cast<Solver<2>*>(&sim);
-          if (solver == nullptr) return;
-          const std::vector<int>& now = solver->particles.layer_wall;
-          if (owner.size() == now.size()) {
-            std::int64_t changed = 0;
-            for (std::size_t i = 0; i < now.size(); ++i) changed += owner[i] != now[i] ? 1 : 0;
-            crossings += changed;
-            steps_with += changed > 0 ? 1 : 0;
-            ++steps;
-          }
-          owner = now;
-        };
-        record(o, doc, mon, count, 0, [&](Outcome& out, const Run&, const Monitor&) {
-          out.crossings = steps > 0 ? static_cast<double>(crossings) / steps : 0.0;
-          out.detail += ", steps with a crossing " + std::to_string(steps_with) + " of " +
-                        std::to_string(steps);
-          const double exact = kGravity * std::sin(th) * end * end / 3.0;
-          out.error = std::abs(travel / exact - 1.0);
-          if (!(out.error <= tolerance)) out.reasons.push_back("travel");
-          if (method != "grid" && method != "sdf" && steps_with == 0) {
-            out.reasons.push_back("no crossing");
-          }
-        });
+        char detail[96];
+        std::snprintf(detail, sizeof detail, "rolling disk R %g on %g degrees, mu %g", R, theta,
+                      mu);
+        const double travel = kGravity * std::sin(th) * end * end / 3.0;
+        run_crossing(method, detail, doc, plane, g, h, m * kGravity * 2.0 * R, travel, -1.0,
+                     tolerance);
       }
+      const double tilt = config_value<double>(p, "bowling_tilt", where) * kPi / 180.0;
+      const double v0 = config_value<double>(p, "bowling_speed", where);
+      const double length = config_value<double>(p, "bowling_length", where);
+      const double bowling_end = config_value<double>(p, "bowling_time", where);
+      const Plane plane =
+          method == "grid"
+              ? make_plane(2, Eigen::Vector3d::UnitY(), Eigen::Vector3d::Zero(), 0.5 * length)
+              : make_plane(2, Eigen::Vector3d(std::sin(tilt), std::cos(tilt), 0.0),
+                           Eigen::Vector3d(0.013, 0.027, 0.0), 0.5 * length);
+      const Eigen::Vector3d g = -kGravity * plane.normal;
+      const Eigen::Vector3d c =
+          plane.origin - (0.5 * length - R - 2 * h) * plane.s + (R + 1e-6) * plane.normal;
+      const json doc = plane_doc(2, plane, 4 * R, method, h, "bspline2/apic", mu,
+                                 disk(c, v0 * plane.s), elastic(1000.0, 2e6, 0.3, "neo_hookean"), g,
+                                 bowling_end, 0.5, work_ / "bowling.obj");
+      const double t_roll = v0 / (3.0 * mu * kGravity);
+      const double travel = bowling_end <= t_roll
+                                ? v0 * bowling_end - 0.5 * mu * kGravity * bowling_end * bowling_end
+                                : v0 * t_roll - 0.5 * mu * kGravity * t_roll * t_roll +
+                                      2.0 / 3.0 * v0 * (bowling_end - t_roll);
+      const double speed =
+          bowling_end <= t_roll ? v0 - mu * kGravity * bowling_end : 2.0 * v0 / 3.0;
+      char detail[128];
+      std::snprintf(
+          detail, sizeof detail,
+          "bowling disk R %g at %g m/s on a floor at %g degrees, mu %g (rolls from %.3f s)", R, v0,
+          tilt * 180.0 / kPi, mu, t_roll);
+      run_crossing(method, detail, doc, plane, g, h, 0.5 * m * v0 * v0, travel, speed, tolerance);
     }
+  }
+
+  /// One crossing run: counts the particles that change owner each step; checks the travel
+  /// along plane.s (and the final speed, if > 0) against the exact values.
+  void run_crossing(const std::string& method, const std::string& detail, const json& doc,
+                    const Plane& plane, const Eigen::Vector3d& g, double h, double scale,
+                    double exact_travel, double exact_speed, double tolerance) {
+    Outcome o;
+    o.part = "crossing";
+    o.method = method;
+    o.kernel = "bspline2/apic";
+    o.cfl = doc["time"]["cfl"].get<double>();
+    o.detail = detail;
+    Monitor mon;
+    mon.plane = plane;
+    mon.gravity = g;
+    mon.h = h;
+    mon.margin = h;
+    mon.scale = scale;
+    std::vector<int> owner;
+    std::int64_t crossings = 0, steps_with = 0, steps = 0;
+    double travel = 0.0, mass = 0.0, speed = 0.0;
+    const Observer count = [&](Simulation& sim, double, double dt) {
+      if (mass == 0.0) mass = total_mass(sim);
+      speed = sim.momentum().dot(plane.s) / mass;
+      travel += speed * dt;
+      auto* solver = dynamic_cast<Solver<2>*>(&sim);
+      if (solver == nullptr) return;
+      const std::vector<int>& now = solver->particles.layer_wall;
+      if (owner.size() == now.size()) {
+        std::int64_t changed = 0;
+        for (std::size_t i = 0; i < now.size(); ++i) changed += owner[i] != now[i] ? 1 : 0;
+        crossings += changed;
+        steps_with += changed > 0 ? 1 : 0;
+        ++steps;
+      }
+      owner = now;
+    };
+    record(o, doc, mon, count, 0, [&](Outcome& out, const Run&, const Monitor&) {
+      out.crossings = steps > 0 ? static_cast<double>(crossings) / steps : 0.0;
+      out.detail +=
+          "; steps with a crossing " + std::to_string(steps_with) + " of " + std::to_string(steps);
+      out.error = std::abs(travel / exact_travel - 1.0);
+      if (exact_speed > 0.0) {
+        out.error = std::max(out.error, std::abs(speed / exact_speed - 1.0));
+      }
+      if (!(out.error <= tolerance)) out.reasons.push_back("travel");
+      if (method != "grid" && method != "sdf" && steps_with == 0) {
+        out.reasons.push_back("no crossing");
+      }
+    });
   }
 
   int finish() {

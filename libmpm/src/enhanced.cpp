@@ -45,11 +45,12 @@ enum class Contact : unsigned char { off, normal, stick, slip };
 /// an earlier matrix with the same pattern (the previous step's: the masses change a little
 /// from step to step). Refinement passes x += F^-1 (b - m x) run until the update is below
 /// 1e-13 of x; if they stall (the matrices are too far apart), m is factorised and `refine`
-/// cleared. Returns false if m cannot be factorised.
+/// cleared. Returns false if m cannot be factorised. `base` keeps the matrix the solver's
+/// factorisation is of (a checkpoint saves it, so a resumed run refines against the same one).
 /// `passes` and `factorizations` count the work done (reported by the benchmarks).
 template <class Rhs>
-bool refined_solve(SparseLdlt& solver, const Sparse& m, bool& refine, const Rhs& b, Rhs& x,
-                   std::size_t& passes, std::size_t& factorizations) {
+bool refined_solve(SparseLdlt& solver, const Sparse& m, Sparse& base, bool& refine, const Rhs& b,
+                   Rhs& x, std::size_t& passes, std::size_t& factorizations) {
   x = solver.solve(b);
   if (!refine) return true;
   for (int pass = 0; pass < 20; ++pass) {
@@ -59,6 +60,7 @@ bool refined_solve(SparseLdlt& solver, const Sparse& m, bool& refine, const Rhs&
     if (dx.norm() <= 1e-13 * x.norm()) return true;
   }
   solver.factorize(m);
+  base = m;
   ++factorizations;
   refine = false;
   if (solver.info() != Eigen::Success) return false;
@@ -68,9 +70,9 @@ bool refined_solve(SparseLdlt& solver, const Sparse& m, bool& refine, const Rhs&
 
 /// Factorises m into `solver` unless `solver` holds a factorisation of an earlier matrix with the
 /// same pattern (then refined_solve() refines against it): sets `refine` accordingly. Returns
-/// false if m cannot be factorised.
-bool factorise_or_reuse(SparseLdlt& solver, const Sparse& m, std::size_t& pattern, bool& factored,
-                        bool reusable, bool& refine, std::size_t& factorizations) {
+/// false if m cannot be factorised. `base` as in refined_solve().
+bool factorise_or_reuse(SparseLdlt& solver, const Sparse& m, Sparse& base, std::size_t& pattern,
+                        bool& factored, bool reusable, bool& refine, std::size_t& factorizations) {
   const std::size_t hash = pattern_hash(m);
   refine = factored && reusable && hash == pattern;
   if (refine) return true;
@@ -79,6 +81,7 @@ bool factorise_or_reuse(SparseLdlt& solver, const Sparse& m, std::size_t& patter
     pattern = hash;
   }
   solver.factorize(m);
+  base = m;
   ++factorizations;
   factored = solver.info() == Eigen::Success;
   return factored;
@@ -269,8 +272,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   e.coupled_r = e.alpha_r - Sparse(minv_c.transpose() * e.grid_r);
   e.grid_rr = e.grid_r.transpose() * e.inv_mass.asDiagonal() * e.grid_r;
   e.kkt_ready = false;  // new masses: the contact system is solved anew
-  if (ns > 0 && !factorise_or_reuse(*e.schur_solver, e.schur, e.schur_pattern, e.schur_factored,
-                                    true, e.schur_refine, e.factorizations)) {
+  if (ns > 0 && !factorise_or_reuse(*e.schur_solver, e.schur, e.schur_base, e.schur_pattern,
+                                    e.schur_factored, true, e.schur_refine, e.factorizations)) {
     fault_ = "dual wall \"" + w.spec->name +
              "\": the enhanced mass matrix is singular (raise scheme.dependence_tolerance)";
   }
@@ -325,8 +328,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
     }
     impulse.setZero();
     if (rows.empty()) {
-      if (ns > 0 && !refined_solve(*e.schur_solver, e.schur, e.schur_refine, rhs_alpha, vs,
-                                   e.refinements, e.factorizations)) {
+      if (ns > 0 && !refined_solve(*e.schur_solver, e.schur, e.schur_base, e.schur_refine,
+                                   rhs_alpha, vs, e.refinements, e.factorizations)) {
         return false;
       }
     } else {
@@ -380,7 +383,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
         // changed since an earlier step): the masses moved a little, so that factorisation is a
         // close preconditioner and a few refinement passes solve the new matrix to round-off;
         // only a pattern or row change, or a refinement that stalls, refactorises.
-        if (!factorise_or_reuse(*e.kkt_solver, kkt, e.kkt_pattern, e.kkt_factored,
+        if (!factorise_or_reuse(*e.kkt_solver, kkt, e.kkt_base, e.kkt_pattern, e.kkt_factored,
                                 signature == e.kkt_signature, e.kkt_refine, e.factorizations)) {
           return false;
         }
@@ -397,8 +400,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
         rhs[nv + c] = rows[c].second.dot(rt_minv_pa.row(rows[c].first).transpose());
       }
       Eigen::VectorXd x;
-      if (!refined_solve(*e.kkt_solver, e.kkt_matrix, e.kkt_refine, rhs, x, e.refinements,
-                         e.factorizations)) {
+      if (!refined_solve(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_refine, rhs, x,
+                         e.refinements, e.factorizations)) {
         return false;
       }
       for (Eigen::Index c = 0; c < ns; ++c) {

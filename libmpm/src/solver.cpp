@@ -11,6 +11,8 @@
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
 
+#include "sparse_pattern.hpp"
+
 namespace mpm {
 namespace {
 
@@ -664,6 +666,39 @@ void unflatten(const std::vector<double>& flat, std::vector<T>& values) {
   }
 }
 
+/// A sparse matrix as three flat arrays (compressed columns) and its shape, under key.*.
+void save_sparse(Checkpoint& c, const std::string& key, Eigen::SparseMatrix<double> m) {
+  m.makeCompressed();
+  c.integers[key + ".shape"] = {m.rows(), m.cols()};
+  c.integers[key + ".outer"].assign(m.outerIndexPtr(), m.outerIndexPtr() + m.outerSize() + 1);
+  c.integers[key + ".inner"].assign(m.innerIndexPtr(), m.innerIndexPtr() + m.nonZeros());
+  c.reals[key + ".values"].assign(m.valuePtr(), m.valuePtr() + m.nonZeros());
+}
+
+/// The inverse of save_sparse(); throws std::runtime_error naming the key if the arrays do not
+/// make a matrix.
+Eigen::SparseMatrix<double> restore_sparse(const Checkpoint& c, const std::string& key) {
+  const auto& shape = c.integer(key + ".shape", 2);
+  const auto& outer = c.integer(key + ".outer", static_cast<std::size_t>(shape[1]) + 1);
+  const auto nonzeros = static_cast<std::size_t>(outer.back());
+  const auto& inner = c.integer(key + ".inner", nonzeros);
+  const auto& values = c.real(key + ".values", nonzeros);
+  std::vector<Eigen::Triplet<double>> t;
+  t.reserve(nonzeros);
+  for (std::int64_t col = 0; col < shape[1]; ++col) {
+    for (auto k = outer[col]; k < outer[col + 1]; ++k) {
+      if (k < 0 || static_cast<std::size_t>(k) >= nonzeros || inner[k] < 0 ||
+          inner[k] >= shape[0]) {
+        throw std::runtime_error(key + ": not a sparse matrix");
+      }
+      t.emplace_back(static_cast<int>(inner[k]), static_cast<int>(col), values[k]);
+    }
+  }
+  Eigen::SparseMatrix<double> m(shape[0], shape[1]);
+  m.setFromTriplets(t.begin(), t.end());
+  return m;
+}
+
 }  // namespace
 
 template <int D>
@@ -688,8 +723,14 @@ void Solver<D>::save_state(Checkpoint& c) const {
   c.reals["solver.wall_impulse"] = flatten(wall_impulse_);
   c.reals["solver.max_speed"] = {max_speed_};
   for (std::size_t i = 0; i < dual_.size(); ++i) {
-    const auto& s = dual_[i].enh.previous_state;
+    const EnhancedState<D>& e = dual_[i].enh;
+    const std::string key = "solver.enhanced_" + std::to_string(i) + ".";
+    const auto& s = e.previous_state;
     c.integers["solver.enhanced_state_" + std::to_string(i)].assign(s.begin(), s.end());
+    c.integers[key + "factored"] = {e.schur_factored ? 1 : 0, e.kkt_factored ? 1 : 0};
+    c.integers[key + "kkt_signature"].assign(e.kkt_signature.begin(), e.kkt_signature.end());
+    if (e.schur_factored) save_sparse(c, key + "schur", e.schur_base);
+    if (e.kkt_factored) save_sparse(c, key + "kkt", e.kkt_base);
   }
 }
 
@@ -717,8 +758,29 @@ void Solver<D>::restore_state(const Checkpoint& c) {
   unflatten(c.real("solver.wall_impulse", 3 * wall_impulse_.size()), wall_impulse_);
   max_speed_ = c.real("solver.max_speed", 1)[0];
   for (std::size_t i = 0; i < dual_.size(); ++i) {
+    EnhancedState<D>& e = dual_[i].enh;
     const auto& s = c.integer("solver.enhanced_state_" + std::to_string(i));
-    dual_[i].enh.previous_state.assign(s.begin(), s.end());
+    e.previous_state.assign(s.begin(), s.end());
+    // The factorisations the run had in hand, made again from the same matrices.
+    const std::string key = "solver.enhanced_" + std::to_string(i) + ".";
+    const auto& factored = c.integer(key + "factored", 2);
+    const auto& signature = c.integer(key + "kkt_signature");
+    e.kkt_signature.assign(signature.begin(), signature.end());
+    auto refactorise = [&](const std::string& name, Eigen::SparseMatrix<double>& base,
+                           SparseLdlt& solver, std::size_t& pattern, bool& ok) {
+      base = restore_sparse(c, key + name);
+      solver.analyzePattern(base);
+      solver.factorize(base);
+      pattern = pattern_hash(base);
+      ok = solver.info() == Eigen::Success;
+      if (!ok) throw std::runtime_error(key + name + ": the saved matrix does not factorise");
+    };
+    if (factored[0] != 0) {
+      refactorise("schur", e.schur_base, *e.schur_solver, e.schur_pattern, e.schur_factored);
+    }
+    if (factored[1] != 0) {
+      refactorise("kkt", e.kkt_base, *e.kkt_solver, e.kkt_pattern, e.kkt_factored);
+    }
   }
 }
 

@@ -56,6 +56,10 @@ struct EnhancedState {
   bool schur_factored = false;        ///< schur_solver holds a valid factorisation (maybe older)
   bool schur_refine = false;          ///< this step's K is solved by refinement
   Eigen::SparseMatrix<double> kkt_matrix;  ///< this step's contact matrix (full storage)
+  /// The matrices the two factorisations in hand are of (maybe an earlier step's): saved in a
+  /// checkpoint and factorised again on restore, so a resumed run refines against the very
+  /// factorisations the uninterrupted run has, and agrees with it bit for bit.
+  Eigen::SparseMatrix<double> schur_base, kkt_base;
   /// Contact state per multiplier from the step's solve, reused by the MUSL remap.
   std::vector<unsigned char> state;
   /// Final contact state per wall multiplier (all of them, 0xFF: not active) of the last step:
