@@ -186,7 +186,7 @@ def stability(args):
         for i in range(len(methods)):
             for j in range(len(shapes)):
                 ax.text(j, i, f"{table[i][j]:.1f}", ha="center", va="center", color="white")
-        ax.set_xticks(range(len(shapes)), shapes)
+        ax.set_xticks(range(len(shapes)), shapes, rotation=15)
         ax.set_yticks(range(len(methods)), methods)
         fig.colorbar(im, ax=ax)
     ax.set_title("largest stable CFL number (every smaller one passes too)")

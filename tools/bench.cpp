@@ -62,6 +62,17 @@ T config_value(const json& j, const std::string& key, const std::string& where) 
   }
 }
 
+/// A CSV field in double quotes, its own double quotes doubled (RFC 4180): fault messages quote
+/// material and body names.
+std::string quoted(const std::string& text) {
+  std::string out = "\"";
+  for (const char c : text) {
+    out += c;
+    if (c == '"') out += '"';
+  }
+  return out + "\"";
+}
+
 bool selected(const std::vector<std::string>& filter, const std::string& name) {
   return filter.empty() || std::find(filter.begin(), filter.end(), name) != filter.end();
 }
@@ -199,8 +210,8 @@ int accuracy(const BenchArgs& args, const json& config) {
     out.precision(9);
     for (const AccuracyRow& r : rows) {
       out << r.series << ',' << r.case_name << ',' << r.method << ',' << r.resolution << ','
-          << r.spacing << ',' << r.seconds << ',' << r.error << ',' << r.checks << ",\"" << r.fault
-          << "\"\n";
+          << r.spacing << ',' << r.seconds << ',' << r.error << ',' << r.checks << ','
+          << quoted(r.fault) << '\n';
     }
     if (!out) {
       std::cerr << "mpm bench: cannot write " << csv.string() << "\n";
@@ -866,8 +877,8 @@ class Stability {
             << ',' << o.cfl << ',' << o.steps << ',' << o.seconds << ',' << o.closest << ','
             << o.penetration << ',' << o.energy_growth << ',' << o.energy_drift << ',' << o.creep
             << ',' << o.crossings << ',' << o.error << ',' << (o.failed() ? 1 : 0) << ','
-            << join(o.reasons) << ",\"" << o.fault << "\",\"" << o.detail << "\"," << o.scene_file
-            << '\n';
+            << join(o.reasons) << ',' << quoted(o.fault) << ',' << quoted(o.detail) << ','
+            << quoted(o.scene_file) << '\n';
       }
       if (!out) {
         std::cerr << "mpm bench: cannot write " << csv.string() << "\n";
