@@ -246,7 +246,8 @@ struct Limits {
 
 /// What one stress run did.
 struct Outcome {
-  std::string part, method, kernel, detail, fault, scene_file;  // kernel: shape/transfer
+  std::string part{}, method{}, kernel{};  ///< kernel: shape function/transfer
+  std::string detail{}, fault{}, scene_file{};
   int dimension = 2;
   int id = 0;
   double cfl = 0.0;
@@ -259,7 +260,7 @@ struct Outcome {
   double creep = kNaN;         ///< long: |centre of mass travel| / h
   double crossings = kNaN;     ///< crossing: particles changing owner per step
   double error = kNaN;         ///< crossing: |d/d_exact - 1|
-  std::vector<std::string> reasons;
+  std::vector<std::string> reasons{};
   [[nodiscard]] bool failed() const { return !reasons.empty(); }
 };
 
@@ -273,7 +274,6 @@ struct Monitor {
   double deepest = 0.0;
   double closest = std::numeric_limits<double>::infinity();
   Eigen::Vector3d com0 = Eigen::Vector3d::Zero(), com = Eigen::Vector3d::Zero();
-  bool grid_wall = false;  ///< a box face: a centre on the face is the face's own business
 
   double energy(const Simulation& sim) const {
     return sim.energies().total() + mass * gravity.dot(plane.origin);
@@ -311,6 +311,19 @@ struct Monitor {
     if (!(o.energy_growth <= limits.energy)) o.reasons.push_back("energy");
   }
 };
+
+/// A monitor of `plane` for particles at spacing h (the plane's last h left out), energy scale
+/// `scale`.
+Monitor watch(const Plane& plane, const Eigen::Vector3d& gravity, double h, double scale) {
+  return Monitor{.plane = plane, .gravity = gravity, .h = h, .margin = h, .scale = scale};
+}
+
+/// An outcome to be filled by a run of `part`.
+Outcome outcome(const std::string& part, const std::string& method, const std::string& kernel,
+                double cfl, int dimension = 2) {
+  return Outcome{
+      .part = part, .method = method, .kernel = kernel, .dimension = dimension, .cfl = cfl};
+}
 
 /// A scene with a flat wall `plane` (dual-grid, sdf, or for "grid" the box face below the
 /// material: the plane must then be y = 0 in 2D, z = 0 in 3D), a grid box spanning the plane's
@@ -593,12 +606,7 @@ class Stability {
       const json body = block_on_plane(dim, plane, size, gap, 0.0, v, 2);
       const json doc = plane_doc(dim, plane, height, method, h, "bspline2/apic", mu, body, material,
                                  g, end, 0.5, work_ / ("throw_" + std::to_string(i) + ".obj"));
-      Outcome o;
-      o.part = "throws";
-      o.method = method;
-      o.kernel = "bspline2/apic";
-      o.dimension = dim;
-      o.cfl = 0.5;
+      Outcome o = outcome("throws", method, "bspline2/apic", 0.5, dim);
       char detail[256];
       std::snprintf(detail, sizeof detail,
                     "n (%.3f %.3f %.3f) offset/h (%.2f %.2f %.2f) v (%.2f %.2f %.2f) mu %g E %.3g "
@@ -606,14 +614,9 @@ class Stability {
                     n.x(), n.y(), n.z(), offset.x() / h, offset.y() / h, offset.z() / h, v.x(),
                     v.y(), v.z(), mu, E, gravity_on ? "on" : "off");
       o.detail = detail;
-      Monitor mon;
-      mon.plane = plane;
-      mon.gravity = g;
-      mon.h = h;
-      mon.margin = h;
       const double m = 1000.0 * size.x() * (three ? size.y() : 1.0) * size.z();
-      mon.scale = 0.5 * m * v.squaredNorm() + m * g.norm() * (gap + size.z());
-      record(o, doc, mon);
+      record(o, doc,
+             watch(plane, g, h, 0.5 * m * v.squaredNorm() + m * g.norm() * (gap + size.z())));
     }
   }
 
@@ -643,28 +646,19 @@ class Stability {
       const json doc =
           plane_doc(2, plane, 0.4, method, h, "bspline2/apic", mu, body,
                     elastic(1000.0, 2e6, 0.3, "neo_hookean"), g, 1e6, 0.5, work_ / "long.obj");
-      Outcome o;
-      o.part = "long";
-      o.method = method;
-      o.kernel = "bspline2/apic";
-      o.cfl = 0.5;
+      Outcome o = outcome("long", method, "bspline2/apic", 0.5);
       char detail[128];
       std::snprintf(detail, sizeof detail, "theta %g mu %g (tan %.3f) %lld steps", theta, mu,
                     std::tan(th), static_cast<long long>(steps));
       o.detail = detail;
-      Monitor mon;
-      mon.plane = plane;
-      mon.gravity = g;
-      mon.h = h;
-      mon.margin = h;
-      const double m = 1000.0 * size.x() * size.z();
-      mon.scale = m * kGravity * size.z();  // its weight times its height
-      record(o, doc, mon, nullptr, steps, [&](Outcome& out, const Run&, const Monitor& w) {
-        // Exact: it sticks. Creep is the centre of mass's travel along the slope.
-        out.creep = std::abs((w.com - w.com0).dot(plane.s)) / h;
-        if (!(out.creep <= creep_limit)) out.reasons.push_back("creep");
-        if (out.steps < steps && out.fault.empty()) out.reasons.push_back("short");
-      });
+      const double m = 1000.0 * size.x() * size.z();  // scale: its weight times its height
+      record(o, doc, watch(plane, g, h, m * kGravity * size.z()), nullptr, steps,
+             [&](Outcome& out, const Run&, const Monitor& w) {
+               // Exact: it sticks. Creep is the centre of mass's travel along the slope.
+               out.creep = std::abs((w.com - w.com0).dot(plane.s)) / h;
+               if (!(out.creep <= creep_limit)) out.reasons.push_back("creep");
+               if (out.steps < steps && out.fault.empty()) out.reasons.push_back("short");
+             });
     }
   }
 
@@ -703,19 +697,11 @@ class Stability {
           const json doc =
               plane_doc(2, plane, 1.2, method, h, kernel, 0.3, body,
                         elastic(1000.0, 2e6, 0.3, "neo_hookean"), g, end, cfl, work_ / "cfl.obj");
-          Outcome o;
-          o.part = "cfl";
-          o.method = method;
-          o.kernel = kernel;
-          o.cfl = cfl;
+          Outcome o = outcome("cfl", method, kernel, cfl);
           o.detail = "theta " + std::to_string(theta) + " v (-3 n + 1 s) mu 0.3";
-          Monitor mon;
-          mon.plane = plane;
-          mon.gravity = g;
-          mon.h = h;
-          mon.margin = h;
           const double m = 1000.0 * size.x() * size.z();
-          mon.scale = 0.5 * m * v.squaredNorm() + m * kGravity * (gap + size.z());
+          const Monitor mon =
+              watch(plane, g, h, 0.5 * m * v.squaredNorm() + m * kGravity * (gap + size.z()));
           record(o, doc, mon);
           if (outcomes_.back().failed()) stable = false;
           if (stable) largest = cfl;
@@ -804,18 +790,9 @@ class Stability {
   void run_crossing(const std::string& method, const std::string& detail, const json& doc,
                     const Plane& plane, const Eigen::Vector3d& g, double h, double scale,
                     double exact_travel, double exact_speed, double tolerance) {
-    Outcome o;
-    o.part = "crossing";
-    o.method = method;
-    o.kernel = "bspline2/apic";
-    o.cfl = doc["time"]["cfl"].get<double>();
+    Outcome o = outcome("crossing", method, "bspline2/apic", doc["time"]["cfl"].get<double>());
     o.detail = detail;
-    Monitor mon;
-    mon.plane = plane;
-    mon.gravity = g;
-    mon.h = h;
-    mon.margin = h;
-    mon.scale = scale;
+    const Monitor mon = watch(plane, g, h, scale);
     std::vector<int> owner;
     std::int64_t crossings = 0, steps_with = 0, steps = 0;
     double travel = 0.0, mass = 0.0, speed = 0.0;
