@@ -110,8 +110,17 @@ int accuracy(const BenchArgs& args, const json& config) {
   if (!config.contains("series") || !config["series"].is_array()) {
     throw ConfigError(file + ": /series: missing or not an array");
   }
-  std::vector<AccuracyRow> rows;
+  // Every --case names a series of the file (checked before anything runs).
   std::set<std::string> known;
+  for (const json& entry : config["series"]) {
+    if (entry.contains("measures") && entry["measures"].is_object()) {
+      for (const auto& [series, substring] : entry["measures"].items()) known.insert(series);
+    }
+  }
+  for (const std::string& name : args.cases) {
+    if (known.count(name) == 0) throw ConfigError(file + ": no series \"" + name + "\"");
+  }
+  std::vector<AccuracyRow> rows;
   for (std::size_t e = 0; e < config["series"].size(); ++e) {
     const json& entry = config["series"][e];
     const std::string where = file + ": /series/" + std::to_string(e);
@@ -139,10 +148,8 @@ int accuracy(const BenchArgs& args, const json& config) {
       sweep_values.assign(sweep.begin()->second.begin(), sweep.begin()->second.end());
     }
     bool wanted = false;
-    for (const auto& [series, substring] : measures) {
-      known.insert(series);
+    for (const auto& [series, substring] : measures)
       wanted = wanted || selected(args.cases, series);
-    }
     if (!wanted) continue;
     if (args.smoke) {
       if (!entry.value("smoke", false)) continue;
@@ -195,10 +202,6 @@ int accuracy(const BenchArgs& args, const json& config) {
       }
     }
   }
-  for (const std::string& name : args.cases) {
-    if (known.count(name) == 0) throw ConfigError(file + ": no series \"" + name + "\"");
-  }
-
   std::filesystem::path csv = args.csv_file;
   if (csv.empty() && !args.plot_file.empty()) {
     csv = std::filesystem::temp_directory_path() /
@@ -452,8 +455,7 @@ class Stability {
     static const std::vector<std::string> parts = {"throws", "long", "cfl", "crossing"};
     for (const std::string& name : args_.cases) {
       if (std::find(parts.begin(), parts.end(), name) == parts.end()) {
-        throw ConfigError("mpm bench stability: no part \"" + name +
-                          "\" (parts: throws long cfl crossing)");
+        throw ConfigError("stability: no part \"" + name + "\" (parts: throws long cfl crossing)");
       }
     }
     if (selected(args_.cases, "throws")) throws();

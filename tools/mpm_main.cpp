@@ -98,9 +98,9 @@ int main(int argc, char** argv) {
   bench->add_option("kind", bench_args.kind, "accuracy or stability")
       ->required()
       ->check(CLI::IsMember({"accuracy", "stability"}));
-  bench->add_option("--case", bench_args.cases,
+  bench->add_option("--case,--cases", bench_args.cases,
                     "accuracy: series; stability: part (throws, long, cfl, crossing); repeatable");
-  bench->add_option("--method", bench_args.methods,
+  bench->add_option("--method,--methods", bench_args.methods,
                     "Wall method: grid, sdf, one-way, mortar, enhanced (repeatable)");
   bench->add_flag("--smoke", bench_args.smoke, "The few configurations the test suite runs");
   bench

@@ -367,6 +367,30 @@ TEST_F(CommandLine, VerifyRejectsMalformedCaseFile) {
   fs::remove_all(dir);
 }
 
+// `mpm bench`: a series, part or configuration that does not exist or does not parse is bad
+// input (exit 2, one line naming the file and key), caught before anything runs.
+TEST_F(CommandLine, BenchRejectsBadConfigurations) {
+  auto expect_one_line = [](const RunResult& r, const std::vector<std::string>& parts) {
+    EXPECT_EQ(r.exit_code, 2) << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+    for (const auto& part : parts) EXPECT_TRUE(contains(r.err, part)) << part << " in " << r.err;
+  };
+  expect_one_line(
+      run_mpm({"bench", "accuracy", "--cases", "rolling_cylinder_2d", "--cases", "no_such_series"}),
+      {"accuracy.json", "no_such_series"});
+  expect_one_line(run_mpm({"bench", "stability", "--cases", "no_such_part"}), {"no_such_part"});
+  const fs::path config = dir_ / "bench.json";
+  write_text(config, R"({"series": [{"case": "bar_impact_1d", "measures": {"bar": "|"},
+      "methods": ["grid"], "resolutions": [0], "params": {"spacing": 0.01}}]})");
+  expect_one_line(run_mpm({"bench", "accuracy", "--config", config.string()}),
+                  {config.string(), "/series/0/resolutions"});
+  write_text(config, R"({"limits": {"penetration": 0.25}})");
+  expect_one_line(run_mpm({"bench", "stability", "--config", config.string()}),
+                  {config.string(), "/limits/energy"});
+  write_text(config, "{ not json");
+  expect_one_line(run_mpm({"bench", "accuracy", "--config", config.string()}), {config.string()});
+}
+
 TEST_F(CommandLine, RejectsThreadCountOutOfRange) {
   write_scene(scene_2d());
   const RunResult r = run_mpm({"run", scene_file_.string(), "-o", out_dir_.string(), "-j", "0"});
