@@ -74,7 +74,12 @@ void check_ply_header(const fs::path& file) {
   std::ifstream in(file, std::ios::binary);
   if (ec || !in) return;  // let assimp report the I/O problem in its own words
   std::string line;
-  if (!std::getline(in, line) || line.rfind("ply", 0) != 0) return;  // not a PLY: assimp decides
+  // assimp takes the magic number in any case ("plY" too: fuzz_mesh found it looping on one).
+  if (!std::getline(in, line) || line.size() < 3) return;
+  std::string magic = line.substr(0, 3);
+  std::transform(magic.begin(), magic.end(), magic.begin(),
+                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  if (magic != "ply") return;  // not a PLY: assimp decides
   for (int number = 2; std::getline(in, line); ++number) {
     if (!line.empty() && line.back() == '\r') line.pop_back();
     if (line == "end_header") return;

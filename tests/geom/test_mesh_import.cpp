@@ -371,6 +371,12 @@ TEST(MeshImport, PlyHeadersAssimpLoopsOnThrow) {
   EXPECT_EQ(error_of([&] { load_mesh(unended); }),
             "mesh '" + unended.string() +
                 "': PLY header has no end_header line (a malformed or truncated file)");
+  // The magic number in mixed case, which assimp accepts (found by fuzzing: it looped on this).
+  const fs::path mixed = write(
+      "mixed.ply", "plY\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_?header\n");
+  EXPECT_EQ(error_of([&] { load_mesh(mixed); }),
+            "mesh '" + mixed.string() +
+                "': PLY header has no end_header line (a malformed or truncated file)");
   const fs::path uncounted =
       write("uncounted.ply", "ply\nformat ascii 1.0\nelement vertex\nend_header\n");
   EXPECT_EQ(error_of([&] { load_mesh(uncounted); }),
