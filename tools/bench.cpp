@@ -267,6 +267,23 @@ struct Outcome {
   [[nodiscard]] bool failed() const { return !reasons.empty(); }
 };
 
+/// Calls f(position, mass) for every particle of `sim`, read in place (a ParticleFrame would copy
+/// stresses and velocities every step only for this).
+template <class F>
+void for_each_particle(const Simulation& sim, F&& f) {
+  auto each = [&](const auto& solver) {
+    const auto& P = solver.particles;
+    for (std::size_t i = 0; i < P.size(); ++i) f(pad3(P.position[i]), P.mass[i]);
+  };
+  if (const auto* s2 = dynamic_cast<const Solver<2>*>(&sim)) {
+    each(*s2);
+  } else if (const auto* s3 = dynamic_cast<const Solver<3>*>(&sim)) {
+    each(*s3);
+  } else {
+    each(dynamic_cast<const Solver<1>&>(sim));
+  }
+}
+
 /// Watches a run: the deepest particle centre behind the plane (over the plane's extent less
 /// `margin`) and the energy relative to the plane's origin, E = kinetic + strain - sum m g.(x - o).
 struct Monitor {
@@ -282,19 +299,17 @@ struct Monitor {
     return sim.energies().total() + mass * gravity.dot(plane.origin);
   }
   void watch(const Simulation& sim, bool first) {
-    const ParticleFrame f = sim.frame(0.0, 0);
     double m = 0.0;
     Eigen::Vector3d c = Eigen::Vector3d::Zero();
-    for (std::size_t i = 0; i < f.count; ++i) {
-      const Eigen::Vector3d x(f.position[3 * i], f.position[3 * i + 1], f.position[3 * i + 2]);
-      m += f.mass[i];
-      c += f.mass[i] * x;
+    const double lim = plane.extent - margin;
+    for_each_particle(sim, [&](const Eigen::Vector3d& x, double mp) {
+      m += mp;
+      c += mp * x;
       const Eigen::Vector3d r = x - plane.origin;
-      const double lim = plane.extent - margin;
-      if (std::abs(r.dot(plane.s)) > lim || std::abs(r.dot(plane.t)) > lim) continue;
+      if (std::abs(r.dot(plane.s)) > lim || std::abs(r.dot(plane.t)) > lim) return;
       deepest = std::max(deepest, -r.dot(plane.normal) / h);
       closest = std::min(closest, r.dot(plane.normal) / h);
-    }
+    });
     com = c / m;
     if (first) {
       mass = m;
@@ -370,10 +385,9 @@ json plane_doc(int dim, const Plane& plane, double height, const std::string& me
     const int segments = std::max(1, static_cast<int>(std::lround(2.0 * plane.extent / h)));
     json points = json::array();
     for (int i = 0; i <= segments; ++i) {
-      // Downhill along s with the material on the left: s = (n_y, -n_x).
+      // Along s = (n_y, -n_x) (make_plane), the material on the left.
       const Eigen::Vector3d x =
-          plane.origin + (-plane.extent + 2.0 * plane.extent * i / segments) *
-                             Eigen::Vector3d(plane.normal.y(), -plane.normal.x(), 0.0);
+          plane.origin + (-plane.extent + 2.0 * plane.extent * i / segments) * plane.s;
       points.push_back(vec({x.x(), x.y()}));
     }
     wall["surface"] = {{"type", "polyline"}, {"points", points}};
@@ -434,6 +448,14 @@ Plane make_plane(int dim, const Eigen::Vector3d& n, const Eigen::Vector3d& offse
     p.t = p.normal.cross(p.s);
   }
   return p;
+}
+
+/// The wall of a verification incline frame (incline_frame(): at the angle to the grid and off
+/// the nodes, or for "grid" the box floor), centred `along` its downhill direction.
+Plane plane_of(const Frame2& f, double extent, double along = 0.0) {
+  const Eigen::Vector3d down(f.down.x(), f.down.y(), 0.0);
+  return make_plane(2, Eigen::Vector3d(f.normal.x(), f.normal.y(), 0.0),
+                    Eigen::Vector3d(f.origin.x(), f.origin.y(), 0.0) + along * down, extent);
 }
 
 class Stability {
@@ -634,13 +656,7 @@ class Stability {
     for (const std::string& method : methods(p, where)) {
       const double th = theta * kPi / 180.0;
       // The wall at theta to the grid (grid: on the box floor, gravity turned instead).
-      Plane plane;
-      if (method == "grid") {
-        plane = make_plane(2, Eigen::Vector3d::UnitY(), Eigen::Vector3d::Zero(), 0.6);
-      } else {
-        plane = make_plane(2, Eigen::Vector3d(std::sin(th), std::cos(th), 0.0),
-                           Eigen::Vector3d(0.013, 0.027, 0.0), 0.6);
-      }
+      const Plane plane = plane_of(incline_frame(theta, method), 0.6);
       // s runs downhill when n leans towards +x: gravity along -n and +s.
       const Eigen::Vector3d g = kGravity * (-std::cos(th) * plane.normal + std::sin(th) * plane.s);
       const Eigen::Vector3d size(0.3, 0.0, 0.15);
@@ -685,11 +701,7 @@ class Stability {
         bool stable = true;
         for (const double cfl : numbers) {
           const double th = theta * kPi / 180.0;
-          const Plane plane =
-              method == "grid"
-                  ? make_plane(2, Eigen::Vector3d::UnitY(), Eigen::Vector3d::Zero(), 1.2)
-                  : make_plane(2, Eigen::Vector3d(std::sin(th), std::cos(th), 0.0),
-                               Eigen::Vector3d(0.013, 0.027, 0.0), 1.2);
+          const Plane plane = plane_of(incline_frame(theta, method), 1.2);
           const Eigen::Vector3d g =
               kGravity * (-std::cos(th) * plane.normal + std::sin(th) * plane.s);
           const Eigen::Vector3d v = -3.0 * plane.normal + 1.0 * plane.s;
@@ -737,12 +749,7 @@ class Stability {
         const double th = theta * kPi / 180.0;
         if (mu < std::tan(th) / 3.0) throw ConfigError(where + "/friction: the disk would slip");
         const Frame2 f = incline_frame(theta, method);
-        Plane plane;
-        plane.normal = Eigen::Vector3d(f.normal.x(), f.normal.y(), 0.0);
-        plane.s = Eigen::Vector3d(f.down.x(), f.down.y(), 0.0);
-        plane.t = Eigen::Vector3d::Zero();
-        plane.origin = Eigen::Vector3d(f.origin.x(), f.origin.y(), 0.0) + 1.0 * plane.s;
-        plane.extent = 1.0;
+        const Plane plane = plane_of(f, 1.0, 1.0);  // the wall runs from 0 to 2 along f.down
         const Eigen::Vector3d c = plane.origin - 0.6 * plane.s + (R + 1e-6) * plane.normal;
         json doc = incline_doc_2d(f, theta, method, h, 0.0, 2.0, disk(c, Eigen::Vector3d::Zero()),
                                   mu, end, {{"update", "musl"}, {"transfer", "apic"}});
@@ -756,15 +763,11 @@ class Stability {
         run_crossing(method, detail, doc, plane, g, h, m * kGravity * 2.0 * R, travel, -1.0,
                      tolerance);
       }
-      const double tilt = config_value<double>(p, "bowling_tilt", where) * kPi / 180.0;
+      const double tilt_deg = config_value<double>(p, "bowling_tilt", where);
       const double v0 = config_value<double>(p, "bowling_speed", where);
       const double length = config_value<double>(p, "bowling_length", where);
       const double bowling_end = config_value<double>(p, "bowling_time", where);
-      const Plane plane =
-          method == "grid"
-              ? make_plane(2, Eigen::Vector3d::UnitY(), Eigen::Vector3d::Zero(), 0.5 * length)
-              : make_plane(2, Eigen::Vector3d(std::sin(tilt), std::cos(tilt), 0.0),
-                           Eigen::Vector3d(0.013, 0.027, 0.0), 0.5 * length);
+      const Plane plane = plane_of(incline_frame(tilt_deg, method), 0.5 * length);
       const Eigen::Vector3d g = -kGravity * plane.normal;
       const Eigen::Vector3d c =
           plane.origin - (0.5 * length - R - 2 * h) * plane.s + (R + 1e-6) * plane.normal;
@@ -782,7 +785,7 @@ class Stability {
       std::snprintf(
           detail, sizeof detail,
           "bowling disk R %g at %g m/s on a floor at %g degrees, mu %g (rolls from %.3f s)", R, v0,
-          tilt * 180.0 / kPi, mu, t_roll);
+          tilt_deg, mu, t_roll);
       run_crossing(method, detail, doc, plane, g, h, 0.5 * m * v0 * v0, travel, speed, tolerance);
     }
   }

@@ -17,6 +17,11 @@ int main(int argc, char** argv) {
   std::string scene_file;
   mpm::RunOptions run_options;
   int threads = 0;
+  // -j: every subcommand that runs scenes takes it.
+  const auto add_threads = [&threads](CLI::App* sub) {
+    sub->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
+        ->check(CLI::Range(1, 1024));
+  };
   CLI::App* run = app.add_subcommand("run", "Run a scene (JSON) and write results to OUTDIR");
   std::filesystem::path resume_dir;
   auto* scene_option = run->add_option("scene", scene_file, "Scene file (JSON)");
@@ -29,8 +34,7 @@ int main(int argc, char** argv) {
   run->add_flag("--overwrite", run_options.overwrite, "Replace an earlier result in OUTDIR")
       ->excludes(resume_option);
   run->add_flag("-q,--quiet", run_options.quiet, "No progress display");
-  run->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
-      ->check(CLI::Range(1, 1024));
+  add_threads(run);
 
   mpm::tools::PrepArgs prep_args;
   CLI::App* prep = app.add_subcommand(
@@ -87,8 +91,7 @@ int main(int argc, char** argv) {
                      "Write every scene run to DIR as JSON (rerun one with mpm run)");
   verify->add_option("--data", verify_args.data_dir, "Folder of the case files")
       ->check(CLI::ExistingDirectory);
-  verify->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
-      ->check(CLI::Range(1, 1024));
+  add_threads(verify);
 
   mpm::tools::BenchArgs bench_args;
   bench_args.scripts_dir = MPM_SCRIPTS_DIR;
@@ -114,8 +117,7 @@ int main(int argc, char** argv) {
   bench->add_option("--seed", bench_args.seed, "stability: random seed of the wall placements");
   bench->add_option("--runs", bench_args.runs, "stability: number of random wall placements")
       ->check(CLI::Range(1, 100000));
-  bench->add_option("-j,--threads", threads, "Worker threads (default: all cores)")
-      ->check(CLI::Range(1, 1024));
+  add_threads(bench);
 
   try {
     app.parse(argc, argv);

@@ -51,6 +51,15 @@ double total_mass(const Solver<D>& s) {
   return m;
 }
 
+template <int D>
+Vec<D> centre_of_mass(const Solver<D>& s) {
+  Vec<D> x = Vec<D>::Zero();
+  for (std::size_t p = 0; p < s.particles.size(); ++p) {
+    x += s.particles.mass[p] * s.particles.position[p];
+  }
+  return x / total_mass(s);
+}
+
 /// Smallest signed distance (x_p - origin) . n over all particles.
 template <int D>
 double min_signed_distance(const Solver<D>& s, const Vec<D>& origin, const Vec<D>& n) {
@@ -813,14 +822,7 @@ InclineResult run_incline(const InclineScene& in, double theta_deg, double mu) {
   EXPECT_LT((scene.bodies[0].rotation.col(D - 1) - in.normal).norm(), 1e-9) << theta_deg;
   EXPECT_NEAR(min_signed_distance<D>(s, origin, n) / kInclineH, 0.25, 1e-3) << theta_deg;
   const double mass = total_mass(s);
-  auto centre_of_mass = [&] {
-    Vec<D> x = Vec<D>::Zero();
-    for (std::size_t p = 0; p < s.particles.size(); ++p) {
-      x += s.particles.mass[p] * s.particles.position[p];
-    }
-    return Vec<D>(x / mass);
-  };
-  const Vec<D> x0 = centre_of_mass();
+  const Vec<D> x0 = centre_of_mass(s);
   InclineResult r;
   r.min_distance = std::numeric_limits<double>::infinity();
   double normal_speed = 0.0;
@@ -834,7 +836,7 @@ InclineResult run_incline(const InclineScene& in, double theta_deg, double mu) {
   // The impulse the wall gave the material over the whole run (never reset): its mean is the
   // load, since the block starts and ends at rest across the incline.
   const Eigen::Vector3d impulse = s.wall_impulses()[0];
-  r.displacement = (centre_of_mass() - x0).dot(downhill) / (0.5 * accel * T * T);
+  r.displacement = (centre_of_mass(s) - x0).dot(downhill) / (0.5 * accel * T * T);
   r.normal_speed = normal_speed / (kGravity * T);
   r.normal_force = impulse.template head<D>().dot(n) / T / normal_load;
   r.friction_force =
@@ -961,14 +963,7 @@ TEST_P(RestingBlock, SticksAndNeverGainsEnergy) {
   const Scene scene = parse_scene(in.doc, "<resting block>");
   Solver<2> s(scene);
   const double mass = total_mass(s);
-  auto centre = [&] {
-    Vec<2> x = Vec<2>::Zero();
-    for (std::size_t p = 0; p < s.particles.size(); ++p) {
-      x += s.particles.mass[p] * s.particles.position[p];
-    }
-    return Vec<2>(x / mass);
-  };
-  const Vec<2> x0 = centre();
+  const Vec<2> x0 = centre_of_mass(s);
   const double e0 = s.energies().total();
   double growth = 0.0;
   std::size_t steps = 0;
@@ -977,7 +972,7 @@ TEST_P(RestingBlock, SticksAndNeverGainsEnergy) {
     ++steps;
   });
   ASSERT_FALSE(s.fault().has_value()) << *s.fault();
-  const double creep = std::abs((centre() - x0).dot(in.downhill.head<2>())) / kInclineH;
+  const double creep = std::abs((centre_of_mass(s) - x0).dot(in.downhill.head<2>())) / kInclineH;
   // Scale: the block's weight times its height (0.15 m), 66 J. A separable wall may lift the
   // block once as it settles onto its touch distance (mortar: 3.6e-4 of the scale, reached in
   // the first second and flat after); the bound is 1e-3, which the double friction crossed within
