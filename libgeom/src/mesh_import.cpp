@@ -65,8 +65,11 @@ std::string lower_extension(const fs::path& file) {
 }
 
 // assimp 5.2's PLY reader loops forever (found by fuzz_mesh) when the header never ends or an
-// element line has no count, so those two header rules are checked before it sees the file, and
-// that the counts fit in the file. The header is ASCII in every PLY variant; the body is left to
+// element line has no count, and reserves memory for whatever count it parses, so the header's
+// grammar is checked before assimp sees the file: every line is a comment, obj_info, format,
+// element or property line, element names are names (assimp parses an unknown name that starts
+// with digits as the count: fuzz_mesh found "element 666...6vertex 8" asking for 64 GiB), and
+// the counts fit in the file. The header is ASCII in every PLY variant; the body is left to
 // assimp (whose runaway allocations on it the child process of load_mesh bounds).
 void check_ply_header(const fs::path& file) {
   std::error_code ec;
@@ -80,25 +83,68 @@ void check_ply_header(const fs::path& file) {
   std::transform(magic.begin(), magic.end(), magic.begin(),
                  [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
   if (magic != "ply") return;  // not a PLY: assimp decides
+  const auto is_name = [](const std::string& word) {
+    return !word.empty() &&
+           (std::isalpha(static_cast<unsigned char>(word[0])) != 0 || word[0] == '_') &&
+           std::all_of(word.begin(), word.end(), [](unsigned char c) {
+             return std::isalnum(c) != 0 || c == '_' || c == '-' || c == '.';
+           });
+  };
+  const auto is_type = [](const std::string& word) {
+    static const std::array<std::string_view, 16> types = {
+        "char", "uchar", "short", "ushort", "int",   "uint",   "float",   "double",
+        "int8", "uint8", "int16", "uint16", "int32", "uint32", "float32", "float64"};
+    return std::find(types.begin(), types.end(), word) != types.end();
+  };
+  bool has_element = false;
   for (int number = 2; std::getline(in, line); ++number) {
     if (!line.empty() && line.back() == '\r') line.pop_back();
     if (line == "end_header") return;
-    if (line.rfind("element", 0) != 0) continue;
     std::istringstream words(line);
-    std::string keyword, name, count, extra;
-    words >> keyword >> name >> count;
-    const bool counted =
-        !count.empty() && count.find_first_not_of("0123456789") == std::string::npos;
-    if (keyword != "element" || name.empty() || !counted || (words >> extra)) {
-      fail(file, "PLY header line " + std::to_string(number) +
-                     " is not 'element <name> <count>' (a malformed file)");
+    std::string keyword;
+    words >> keyword;
+    const auto malformed = [&](const std::string& expected) {
+      fail(file, "PLY header line " + std::to_string(number) + " is not '" + expected +
+                     "' (a malformed file)");
+    };
+    if (keyword.empty() || keyword == "comment" || keyword == "obj_info" || keyword == "format") {
+      continue;
     }
-    // Every element takes at least a byte of the body (assimp reserves memory for the count
-    // first: 35 digits of it were found by fuzz_mesh).
-    if (count.size() > 18 || std::stoull(count) > size) {
-      fail(file, "PLY header line " + std::to_string(number) + " announces " + count + " '" + name +
-                     "' elements, more than the file's " + std::to_string(size) +
-                     " bytes can hold (a malformed file)");
+    if (keyword == "element") {
+      std::string name, count, extra;
+      words >> name >> count;
+      const bool counted =
+          !count.empty() && count.find_first_not_of("0123456789") == std::string::npos;
+      if (!is_name(name) || !counted || (words >> extra)) malformed("element <name> <count>");
+      // Every element takes at least a byte of the body (assimp reserves memory for the count
+      // first: 35 digits of it were found by fuzz_mesh).
+      if (count.size() > 18 || std::stoull(count) > size) {
+        fail(file, "PLY header line " + std::to_string(number) + " announces " + count + " '" +
+                       name + "' elements, more than the file's " + std::to_string(size) +
+                       " bytes can hold (a malformed file)");
+      }
+      has_element = true;
+    } else if (keyword == "property") {
+      std::string type, name, extra;
+      words >> type;
+      bool ok = has_element;
+      if (type == "list") {
+        std::string count_type, item_type;
+        words >> count_type >> item_type;
+        ok = ok && is_type(count_type) && is_type(item_type);
+      } else {
+        ok = ok && is_type(type);
+      }
+      words >> name;
+      if (!ok || !is_name(name) || (words >> extra)) {
+        malformed(
+            "property <type> <name>' or 'property list <type> <type> <name>' after an "
+            "'element");
+      }
+    } else {
+      fail(file, "PLY header line " + std::to_string(number) + " ('" + line.substr(0, 24) +
+                     "') is not a header line and no end_header came before it (a malformed or "
+                     "truncated file)");
     }
   }
   fail(file, "PLY header has no end_header line (a malformed or truncated file)");

@@ -3,8 +3,7 @@
 // Any input must give a mesh or a MeshError; any other exception, a crash or a sanitizer report
 // is a finding.
 
-#include <unistd.h>
-
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <cstdlib>
@@ -12,15 +11,14 @@
 #include <fstream>
 #include <string>
 
+#include "fuzz_file.hpp"
 #include "mpmgeom/mesh_repair.hpp"
 #include "mpmgeom/triangle_mesh.hpp"
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
   if (size < 1) return 0;
   static const char* const kExtensions[] = {".obj", ".stl", ".ply", ".off"};
-  const std::filesystem::path file =
-      std::filesystem::temp_directory_path() /
-      ("mpm_fuzz_mesh_" + std::to_string(::getpid()) + kExtensions[data[0] % 4]);
+  const std::filesystem::path file = fuzz_file("mpm_fuzz_mesh", kExtensions[data[0] % 4]);
   {
     std::ofstream out(file, std::ios::binary | std::ios::trunc);
     out.write(reinterpret_cast<const char*>(data + 1), static_cast<std::streamsize>(size - 1));

@@ -370,30 +370,80 @@ TEST(MeshImport, PlyHeadersAssimpLoopsOnThrow) {
       write("unended.ply", "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n0\n");
   EXPECT_EQ(error_of([&] { load_mesh(unended); }),
             "mesh '" + unended.string() +
+                "': PLY header line 5 ('0') is not a header line and no end_header came before it "
+                "(a malformed or truncated file)");
+  const fs::path endless =
+      write("endless.ply", "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n");
+  EXPECT_EQ(error_of([&] { load_mesh(endless); }),
+            "mesh '" + endless.string() +
                 "': PLY header has no end_header line (a malformed or truncated file)");
   // The magic number in mixed case, which assimp accepts (found by fuzzing: it looped on this).
   const fs::path mixed = write(
       "mixed.ply", "plY\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_?header\n");
   EXPECT_EQ(error_of([&] { load_mesh(mixed); }),
             "mesh '" + mixed.string() +
-                "': PLY header has no end_header line (a malformed or truncated file)");
+                "': PLY header line 5 ('end_?header') is not a header line and no end_header came "
+                "before it (a malformed or truncated file)");
   const fs::path uncounted =
       write("uncounted.ply", "ply\nformat ascii 1.0\nelement vertex\nend_header\n");
   EXPECT_EQ(error_of([&] { load_mesh(uncounted); }),
             "mesh '" + uncounted.string() +
                 "': PLY header line 3 is not 'element <name> <count>' (a malformed file)");
+  // An element name that starts with digits: assimp parses it as the count (found by fuzzing:
+  // "element 666...6vertex 8" made it ask for 64 GiB).
+  const fs::path numeric = write("numeric.ply",
+                                 "ply\nformat ascii 1.0\nelement 6666666666vertex 8\n"
+                                 "property float x\nend_header\n");
+  EXPECT_EQ(error_of([&] { load_mesh(numeric); }),
+            "mesh '" + numeric.string() +
+                "': PLY header line 3 is not 'element <name> <count>' (a malformed file)");
+  // A property of no known type, or before any element.
+  const fs::path untyped = write("untyped.ply",
+                                 "ply\nformat ascii 1.0\nelement vertex 8\n"
+                                 "property flaot x\nend_header\n");
+  const std::string property_rule =
+      "' or 'property list <type> <type> <name>' after an 'element' (a malformed file)";
+  EXPECT_EQ(error_of([&] { load_mesh(untyped); }),
+            "mesh '" + untyped.string() + "': PLY header line 4 is not 'property <type> <name>" +
+                property_rule);
+  const fs::path orphan =
+      write("orphan.ply", "ply\nformat ascii 1.0\nproperty float x\nend_header\n");
+  EXPECT_EQ(error_of([&] { load_mesh(orphan); }),
+            "mesh '" + orphan.string() + "': PLY header line 3 is not 'property <type> <name>" +
+                property_rule);
+  // Comments, obj_info and blank lines are header lines.
+  const fs::path commented = write("commented.ply",
+                                   "ply\nformat ascii 1.0\ncomment made by hand\nobj_info x\n\n"
+                                   "element vertex 3\nproperty float x\nproperty float y\n"
+                                   "property float z\nelement face 1\n"
+                                   "property list uchar int vertex_indices\nend_header\n"
+                                   "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n");
+  EXPECT_EQ(load_mesh(commented).F.rows(), 1);
   fs::remove_all(dir);
 }
 
 TEST(MeshImport, PlyCountsBeyondTheFileThrow) {
   // Found by fuzzing: a header announcing 37 digits of faces, for which assimp reserves memory.
   const fs::path file =
+      fs::temp_directory_path() / ("mpm_ply_count_" + std::to_string(::getpid()) + ".ply");
+  std::ofstream(file) << "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                         "property float y\nproperty float z\n"
+                         "element face 3333333333333333333333333333333333388\n"
+                         "property list uchar int vertex_indices\nend_header\n"
+                         "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
+  EXPECT_EQ(error_of([&] { load_mesh(file); }),
+            "mesh '" + file.string() +
+                "': PLY header line 7 announces 3333333333333333333333333333333333388 'face' "
+                "elements, more than the file's " +
+                std::to_string(fs::file_size(file)) + " bytes can hold (a malformed file)");
+  fs::remove(file);
+  // The fuzzer's own input: its header is garbled before the count.
+  const fs::path found =
       fs::path(MPM_DATA_DIR) / ".." / "tests" / "data" / "broken_meshes" / "huge_element_count.ply";
-  const std::string msg = error_of([&] { load_mesh(file); });
-  EXPECT_EQ(msg, "mesh '" + file.string() +
-                     "': PLY header line 13 announces 3333333333333333333333333333333333388 'face' "
-                     "elements, more than the file's " +
-                     std::to_string(fs::file_size(file)) + " bytes can hold (a malformed file)");
+  EXPECT_EQ(error_of([&] { load_mesh(found); }),
+            "mesh '" + found.string() +
+                "': PLY header line 4 is not 'property <type> <name>' or 'property list <type> "
+                "<type> <name>' after an 'element' (a malformed file)");
 }
 
 TEST(MeshImport, RunawayReaderIsStoppedAtItsMemoryBudget) {
