@@ -67,6 +67,8 @@ void Solver<D>::setup_dual_walls() {
     w.centroid.assign(n, Vec<D>::Zero());
     w.touch_gap.assign(n, std::numeric_limits<double>::infinity());
     w.enhanced = spec.method == CouplingMethod::enhanced;
+    w.grid_row_of.assign(grid.size(), -1);
+    w.layer_row_of.assign(n, -1);
     if (w.enhanced) {
       w.momentum_new.assign(n, Vec<D>::Zero());
       w.enh.a_row_of.assign(grid.size(), -1);
@@ -317,6 +319,35 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
   }
 }
 
+// Forms this step's Schur complement of the Phi coupling (layer_couple) and factorises it,
+// analysing the ordering again only for a new pattern; keeps it as the matrix the factorisation
+// is of (a checkpoint saves it). False, with the fault set, if it cannot be factorised.
+template <int D>
+bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar) {
+  const Eigen::SparseMatrix<double> gt = w.grid_active.transpose();
+  const Eigen::SparseMatrix<double> scaled = w.inv_grid_mass.asDiagonal() * w.grid_active;
+  Eigen::SparseMatrix<double> S = gt * scaled;
+  if (mortar) {
+    const Eigen::SparseMatrix<double> bt = w.boundary_active.transpose();
+    const Eigen::SparseMatrix<double> layer = w.inv_layer_mass.asDiagonal() * w.boundary_active;
+    S += bt * layer;
+  }
+  for (Eigen::Index i = 0; i < S.rows(); ++i) S.coeffRef(i, i) += w.schur_shift;
+  const std::size_t hash = pattern_hash(S);
+  if (hash != w.pattern_hash) {
+    w.schur->analyzePattern(S);
+    w.pattern_hash = hash;
+  }
+  w.schur->factorize(S);
+  ++w.factorizations;
+  w.schur_base = std::move(S);
+  w.schur_factored = w.schur->info() == Eigen::Success;
+  if (!w.schur_factored) {
+    fault_ = "dual wall \"" + w.spec->name + "\": the Phi coupling matrix does not factorise";
+  }
+  return w.schur_factored;
+}
+
 // Phi: R^A^T v^A = R^alpha^T v^alpha, componentwise. Only nodes above the coupling mass
 // threshold take part. Only multipliers whose own boundary node carries mass and whose R^A
 // column touches such a standard-grid node constrain anything; the
@@ -340,14 +371,18 @@ void Solver<D>::layer_couple(bool remapped) {
     if (!remapped) {
       // Assemble the active coupling and its Schur complement once per step; the MUSL remap
       // reuses it (the masses do not change).
+      for (const int node : w.grid_rows) w.grid_row_of[node] = -1;
+      for (const int node : w.layer_rows) w.layer_row_of[node] = -1;
       w.active_multipliers.clear();
       w.grid_rows.clear();
       w.layer_rows.clear();
-      std::unordered_map<int, int> grid_row_of, layer_row_of;  // node -> compact row
-      auto compact = [](std::unordered_map<int, int>& row_of, std::vector<int>& rows, int node) {
-        const auto [it, inserted] = row_of.try_emplace(node, static_cast<int>(rows.size()));
-        if (inserted) rows.push_back(node);
-        return it->second;
+      auto compact = [](std::vector<int>& row_of, std::vector<int>& rows, int node) {
+        int& row = row_of[static_cast<std::size_t>(node)];
+        if (row < 0) {
+          row = static_cast<int>(rows.size());
+          rows.push_back(node);
+        }
+        return row;
       };
       std::vector<Eigen::Triplet<double>> ga, ba;
       for (int mu = 0; mu < static_cast<int>(w.multiplier_node.size()); ++mu) {
@@ -367,13 +402,13 @@ void Solver<D>::layer_couple(bool remapped) {
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
           const int node = static_cast<int>(it.row());
           if (grid.mass[node] > coupling_threshold_) {
-            ga.emplace_back(compact(grid_row_of, w.grid_rows, node), col, gs * it.value());
+            ga.emplace_back(compact(w.grid_row_of, w.grid_rows, node), col, gs * it.value());
           }
         }
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
           const int node = static_cast<int>(it.row());
           if (w.mass[node] > coupling_threshold_) {
-            ba.emplace_back(compact(layer_row_of, w.layer_rows, node), col, bs * it.value());
+            ba.emplace_back(compact(w.layer_row_of, w.layer_rows, node), col, bs * it.value());
           }
         }
       }
@@ -383,60 +418,90 @@ void Solver<D>::layer_couple(bool remapped) {
       w.grid_active.setFromTriplets(ga.begin(), ga.end());
       w.boundary_active.resize(static_cast<Eigen::Index>(w.layer_rows.size()), k);
       w.boundary_active.setFromTriplets(ba.begin(), ba.end());
-      // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar); every kept row is
-      // above the coupling threshold, so its mass is positive.
-      Eigen::VectorXd inv_grid_mass(w.grid_rows.size());
+      // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar) + shift I; every kept
+      // row is above the coupling threshold, so its mass is positive. More multipliers than the
+      // active nodes can satisfy makes S singular (the inf-sup problem of DESIGN.md): a relative
+      // 1e-10 diagonal shift keeps the factorisation defined and leaves well-posed systems
+      // unchanged to round-off.
+      w.inv_grid_mass.resize(static_cast<Eigen::Index>(w.grid_rows.size()));
       for (std::size_t r = 0; r < w.grid_rows.size(); ++r) {
-        inv_grid_mass[static_cast<Eigen::Index>(r)] = 1.0 / grid.mass[w.grid_rows[r]];
+        w.inv_grid_mass[static_cast<Eigen::Index>(r)] = 1.0 / grid.mass[w.grid_rows[r]];
       }
-      Eigen::SparseMatrix<double> S =
-          w.grid_active.transpose() * inv_grid_mass.asDiagonal() * w.grid_active;
-      if (mortar) {
-        Eigen::VectorXd inv_layer_mass(w.layer_rows.size());
-        for (std::size_t r = 0; r < w.layer_rows.size(); ++r) {
-          inv_layer_mass[static_cast<Eigen::Index>(r)] = 1.0 / w.mass[w.layer_rows[r]];
+      w.inv_layer_mass.resize(mortar ? static_cast<Eigen::Index>(w.layer_rows.size()) : 0);
+      for (Eigen::Index r = 0; r < w.inv_layer_mass.size(); ++r) {
+        w.inv_layer_mass[r] = 1.0 / w.mass[w.layer_rows[static_cast<std::size_t>(r)]];
+      }
+      Eigen::VectorXd diagonal = Eigen::VectorXd::Zero(k);
+      for (Eigen::Index c = 0; c < k; ++c) {
+        for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_active, c); it; ++it) {
+          diagonal[c] += it.value() * it.value() * w.inv_grid_mass[it.row()];
         }
-        S += w.boundary_active.transpose() * inv_layer_mass.asDiagonal() * w.boundary_active;
+        if (!mortar) continue;
+        for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_active, c); it; ++it) {
+          diagonal[c] += it.value() * it.value() * w.inv_layer_mass[it.row()];
+        }
       }
-      // More multipliers than the active nodes can satisfy makes S singular (the inf-sup
-      // problem of DESIGN.md): a relative 1e-10 diagonal shift keeps the factorisation defined
-      // and leaves well-posed systems unchanged to round-off.
-      const double shift = 1e-10 * S.diagonal().maxCoeff();
-      for (Eigen::Index i = 0; i < k; ++i) S.coeffRef(i, i) += shift;
-      // The ordering (AMD) depends only on the sparsity, which changes only when nodes or
-      // multipliers switch on or off: analyse it then, factorise every step.
-      const std::size_t hash = pattern_hash(S);
-      if (hash != w.pattern_hash) {
-        w.schur->analyzePattern(S);
-        w.pattern_hash = hash;
+      w.schur_shift = 1e-10 * diagonal.maxCoeff();
+      // While the active set keeps the coupling's pattern, the factorisation in hand (an earlier
+      // step's S) solves this step's by refinement, the residuals taken with the factors
+      // R^A, M_A (S itself is not formed): layer particles move little per step, so S changes
+      // little. A new pattern, or refinement that stalls, forms and factorises S.
+      const std::size_t structure =
+          pattern_hash(w.grid_active) * 1000003U + pattern_hash(w.boundary_active);
+      w.schur_refine = w.schur_factored && structure == w.factored_structure;
+      if (!w.schur_refine) {
+        w.factored_structure = structure;
+        if (!factorise_schur(w, mortar)) continue;
       }
-      w.schur->factorize(S);
     }
-    if (w.active_multipliers.empty() || w.schur->info() != Eigen::Success) continue;
+    if (w.active_multipliers.empty() || !w.schur_factored) continue;
 
     // Apply to the new velocities (and to the old ones, which FLIP differences against), or to
-    // the remapped velocities of MUSL.
+    // the remapped velocities of MUSL; all D components in one solve.
+    using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
     auto solve = [&](std::vector<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
       const auto ng = static_cast<Eigen::Index>(w.grid_rows.size());
       const auto nl = static_cast<Eigen::Index>(w.layer_rows.size());
-      for (int d = 0; d < D; ++d) {
-        Eigen::VectorXd a(ng), b(nl);
-        for (Eigen::Index r = 0; r < ng; ++r) a[r] = va[w.grid_rows[r]][d];
-        for (Eigen::Index r = 0; r < nl; ++r) b[r] = valpha[w.layer_rows[r]][d];
-        const Eigen::VectorXd gap =
-            w.grid_active.transpose() * a - w.boundary_active.transpose() * b;
-        const Eigen::VectorXd lambda = w.schur->solve(gap);
-        const Eigen::VectorXd da = w.grid_active * lambda;
-        for (Eigen::Index r = 0; r < ng; ++r) {
-          const int n = w.grid_rows[r];
-          va[n][d] -= da[r] / grid.mass[n];
-        }
-        if (mortar) {
-          const Eigen::VectorXd db = w.boundary_active * lambda;
-          for (Eigen::Index r = 0; r < nl; ++r) {
-            const int n = w.layer_rows[r];
-            valpha[n][d] += db[r] / w.mass[n];
+      Block a(ng, D), b(nl, D);
+      for (Eigen::Index r = 0; r < ng; ++r) a.row(r) = va[w.grid_rows[r]].transpose();
+      for (Eigen::Index r = 0; r < nl; ++r) b.row(r) = valpha[w.layer_rows[r]].transpose();
+      const Block gap = w.grid_active.transpose() * a - w.boundary_active.transpose() * b;
+      Block lambda = w.schur->solve(gap);
+      if (w.schur_refine) {
+        // x += F^-1 (gap - S x) until the update is below 1e-13 of x; if that stalls (the
+        // masses moved too far from the factorised step's), factorise this step's S.
+        auto apply = [&](const Block& x) {
+          Block y = w.grid_active.transpose() *
+                    (w.inv_grid_mass.asDiagonal() * (w.grid_active * x)).eval();
+          if (mortar) {
+            y += w.boundary_active.transpose() *
+                 (w.inv_layer_mass.asDiagonal() * (w.boundary_active * x)).eval();
           }
+          return Block(y + w.schur_shift * x);
+        };
+        bool converged = false;
+        for (int pass = 0; pass < 20 && !converged; ++pass) {
+          const Block dx = w.schur->solve(Block(gap - apply(lambda)));
+          lambda += dx;
+          ++w.refinements;
+          converged = dx.norm() <= 1e-13 * lambda.norm();
+        }
+        if (!converged) {
+          if (!factorise_schur(w, mortar)) return;
+          w.schur_refine = false;
+          lambda = w.schur->solve(gap);
+        }
+      }
+      const Block da = w.grid_active * lambda;
+      for (Eigen::Index r = 0; r < ng; ++r) {
+        const int n = w.grid_rows[r];
+        va[n] -= da.row(r).transpose() / grid.mass[n];
+      }
+      if (mortar) {
+        const Block db = w.boundary_active * lambda;
+        for (Eigen::Index r = 0; r < nl; ++r) {
+          const int n = w.layer_rows[r];
+          valpha[n] += db.row(r).transpose() / w.mass[n];
         }
       }
     };
@@ -444,7 +509,10 @@ void Solver<D>::layer_couple(bool remapped) {
       solve(grid.velocity, w.velocity);
     } else {
       solve(grid.velocity_new, w.velocity_new);
-      solve(grid.velocity, w.velocity);
+      // Only FLIP reads the old velocities again (v^{n+1} - v^n); PIC and APIC gather v^{n+1}.
+      if (scene_.transfer != Transfer::apic && scene_.flip_blend > 0.0) {
+        solve(grid.velocity, w.velocity);
+      }
     }
   }
 }
@@ -611,6 +679,7 @@ void Solver<D>::layer_gather_gradient() {
   template void Solver<D>::layer_update(double);                                  \
   template void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*, bool); \
   template void Solver<D>::layer_couple(bool);                                    \
+  template bool Solver<D>::factorise_schur(DualWall<D>&, bool);                   \
   template void Solver<D>::layer_gather(double);                                  \
   template void Solver<D>::layer_remap();                                         \
   template void Solver<D>::layer_gather_gradient();

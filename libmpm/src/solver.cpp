@@ -260,19 +260,44 @@ void Solver<D>::scatter(bool with_force) {
     if (owned_by_layer(p)) return;  // the boundary grid owns it (layer_scatter)
     const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
     const double m = P.mass[p];
-    const Vec<D> v = P.velocity[p];
-    const Mat<D> C = apic ? P.affine[p] : Mat<D>::Zero();
+    // Plain scalars in the node loop (as in sample_grid(): Eigen 3-vector temporaries there cost
+    // a store-forwarding stall per node).
+    double v[D], C[D][D] = {};
+    for (int a = 0; a < D; ++a) {
+      v[a] = P.velocity[p][a];
+      for (int b = 0; b < D; ++b) C[a][b] = apic ? P.affine[p](a, b) : 0.0;
+    }
     if (with_force) {
-      const Mat<D> vs = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p];
-      const Vec<D> mb = m * body_acceleration_[P.body[p]];
+      const Mat<D> stress = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p];
+      double vs[D][D], mb[D];
+      for (int a = 0; a < D; ++a) {
+        mb[a] = m * body_acceleration_[P.body[p]][a];
+        for (int b = 0; b < D; ++b) vs[a][b] = stress(a, b);
+      }
       st.for_each(grid, [&](int node, double N, const Vec<D>& dN, const Vec<D>& dx) {
-        grid.mass[node] += N * m;
-        grid.momentum[node] += N * m * (v + C * dx);
-        grid.force[node] += vs * dN + N * mb;
+        const double Nm = N * m;
+        grid.mass[node] += Nm;
+        double* momentum = grid.momentum[node].data();
+        double* force = grid.force[node].data();
+        for (int a = 0; a < D; ++a) {
+          double va = v[a], fa = N * mb[a];
+          for (int b = 0; b < D; ++b) {
+            va += C[a][b] * dx[b];
+            fa += vs[a][b] * dN[b];
+          }
+          momentum[a] += Nm * va;
+          force[a] += fa;
+        }
       });
     } else {
       st.for_each(grid, [&](int node, double N, const Vec<D>& /*dN*/, const Vec<D>& dx) {
-        grid.momentum[node] += N * m * (v + C * dx);
+        const double Nm = N * m;
+        double* momentum = grid.momentum[node].data();
+        for (int a = 0; a < D; ++a) {
+          double va = v[a];
+          for (int b = 0; b < D; ++b) va += C[a][b] * dx[b];
+          momentum[a] += Nm * va;
+        }
       });
     }
   };
@@ -386,32 +411,52 @@ struct GridSample {
 /// what its scheme uses).
 enum SampleParts : unsigned { kIncrement = 1U, kGradient = 2U, kMoment = 4U };
 
+// The sums run in plain scalars and are copied out at the end. With Eigen 3-vectors (the
+// accumulators, N v_I) the compiler built each product on the stack in 8-byte pieces and read it
+// back as one 16-byte vector, a store-forwarding stall at every node that took 64% of the
+// standard step (perf, session of 2026-12-01).
 template <unsigned Parts, int D, class Shape>
 GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
                           const std::vector<Vec<D>>& v, const std::vector<Vec<D>>& v_old,
                           double threshold) {
   double weight = 0.0;
-  Vec<D> grad_sum = Vec<D>::Zero(), dx_sum = Vec<D>::Zero();
-  GridSample<D> s;
+  double value[D] = {}, increment[D] = {}, grad_sum[D] = {}, dx_sum[D] = {};
+  double gradient[D][D] = {}, moment[D][D] = {};
   st.for_each(grid, [&](int node, double N, const Vec<D>& dN, const Vec<D>& dx) {
     if (grid.mass[node] <= threshold) return;
-    const Vec<D>& vn = v[node];
+    const double* vn = v[node].data();
     weight += N;
-    s.value += N * vn;
-    if constexpr ((Parts & kIncrement) != 0) s.increment += N * (vn - v_old[node]);
+    for (int a = 0; a < D; ++a) value[a] += N * vn[a];
+    if constexpr ((Parts & kIncrement) != 0) {
+      const double* vo = v_old[node].data();
+      for (int a = 0; a < D; ++a) increment[a] += N * (vn[a] - vo[a]);
+    }
     if constexpr ((Parts & kGradient) != 0) {
-      s.gradient += vn * dN.transpose();
-      grad_sum += dN;
+      for (int a = 0; a < D; ++a) {
+        grad_sum[a] += dN[a];
+        for (int b = 0; b < D; ++b) gradient[a][b] += vn[a] * dN[b];
+      }
     }
     if constexpr ((Parts & kMoment) != 0) {
-      s.moment += N * vn * dx.transpose();
-      dx_sum += N * dx;
+      for (int a = 0; a < D; ++a) {
+        dx_sum[a] += N * dx[a];
+        const double nv = N * vn[a];
+        for (int b = 0; b < D; ++b) moment[a][b] += nv * dx[b];
+      }
     }
   });
-  if (weight <= 0.0) return {};
-  s.value /= weight;
-  if constexpr ((Parts & kGradient) != 0) s.gradient -= s.value * grad_sum.transpose();
-  if constexpr ((Parts & kMoment) != 0) s.moment -= s.value * dx_sum.transpose();
+  GridSample<D> s;
+  if (weight <= 0.0) return s;
+  for (int a = 0; a < D; ++a) s.value[a] = value[a] / weight;
+  for (int a = 0; a < D; ++a) {
+    if constexpr ((Parts & kIncrement) != 0) s.increment[a] = increment[a];
+    for (int b = 0; b < D; ++b) {
+      if constexpr ((Parts & kGradient) != 0) {
+        s.gradient(a, b) = gradient[a][b] - s.value[a] * grad_sum[b];
+      }
+      if constexpr ((Parts & kMoment) != 0) s.moment(a, b) = moment[a][b] - s.value[a] * dx_sum[b];
+    }
+  }
   return s;
 }
 
@@ -731,6 +776,11 @@ void Solver<D>::save_state(Checkpoint& c) const {
     c.integers[key + "kkt_signature"].assign(e.kkt_signature.begin(), e.kkt_signature.end());
     if (e.schur_factored) save_sparse(c, key + "schur", e.schur_base);
     if (e.kkt_factored) save_sparse(c, key + "kkt", e.kkt_base);
+    // Mortar / one-way: the Schur complement the factorisation in hand is of.
+    const std::string phi = "solver.coupling_" + std::to_string(i) + ".";
+    c.integers[phi + "factored"] = {dual_[i].schur_factored ? 1 : 0,
+                                    static_cast<std::int64_t>(dual_[i].factored_structure)};
+    if (dual_[i].schur_factored) save_sparse(c, phi + "schur", dual_[i].schur_base);
   }
 }
 
@@ -768,18 +818,26 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     e.kkt_signature.assign(signature.begin(), signature.end());
     auto refactorise = [&](const std::string& name, Eigen::SparseMatrix<double>& base,
                            SparseLdlt& solver, std::size_t& pattern, bool& ok) {
-      base = restore_sparse(c, key + name);
+      base = restore_sparse(c, name);
       solver.analyzePattern(base);
       solver.factorize(base);
       pattern = pattern_hash(base);
       ok = solver.info() == Eigen::Success;
-      if (!ok) throw std::runtime_error(key + name + ": the saved matrix does not factorise");
+      if (!ok) throw std::runtime_error(name + ": the saved matrix does not factorise");
     };
     if (factored[0] != 0) {
-      refactorise("schur", e.schur_base, *e.schur_solver, e.schur_pattern, e.schur_factored);
+      refactorise(key + "schur", e.schur_base, *e.schur_solver, e.schur_pattern, e.schur_factored);
     }
     if (factored[1] != 0) {
-      refactorise("kkt", e.kkt_base, *e.kkt_solver, e.kkt_pattern, e.kkt_factored);
+      refactorise(key + "kkt", e.kkt_base, *e.kkt_solver, e.kkt_pattern, e.kkt_factored);
+    }
+    DualWall<D>& w = dual_[i];
+    const std::string phi = "solver.coupling_" + std::to_string(i) + ".";
+    const auto& coupling = c.integer(phi + "factored", 2);
+    w.schur_factored = false;
+    w.factored_structure = static_cast<std::size_t>(coupling[1]);
+    if (coupling[0] != 0) {
+      refactorise(phi + "schur", w.schur_base, *w.schur, w.pattern_hash, w.schur_factored);
     }
   }
 }

@@ -1,10 +1,14 @@
 #pragma once
-// The sparsity signature the dual-grid solvers use to decide when a fill-reducing ordering (a
-// symbolic factorisation) must be recomputed.
+// What the dual-grid solvers (the mortar/one-way Schur complement, Enhanced's systems) share:
+// the sparsity signature that decides when a fill-reducing ordering (a symbolic factorisation)
+// must be recomputed, and the reuse of an earlier step's factorisation by refinement.
 
 #include <cstddef>
 
+#include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
+
+#include "mpm/dual_grid.hpp"
 
 namespace mpm {
 
@@ -17,6 +21,55 @@ inline std::size_t pattern_hash(const Eigen::SparseMatrix<double>& m) {
     }
   }
   return hash;
+}
+
+/// Solves m x = b with `solver`, which holds a factorisation of m itself or, when `refine`, of
+/// an earlier matrix with the same pattern (the previous step's: the masses change a little
+/// from step to step). Refinement passes x += F^-1 (b - m x) run until the update is below
+/// 1e-13 of x; if they stall (the matrices are too far apart), m is factorised and `refine`
+/// cleared. Returns false if m cannot be factorised. `base` keeps the matrix the solver's
+/// factorisation is of (a checkpoint saves it, so a resumed run refines against the same one).
+/// `passes` and `factorizations` count the work done (reported by the benchmarks).
+template <class Rhs>
+bool refined_solve(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
+                   Eigen::SparseMatrix<double>& base, bool& refine, const Rhs& b, Rhs& x,
+                   std::size_t& passes, std::size_t& factorizations) {
+  x = solver.solve(b);
+  if (!refine) return true;
+  for (int pass = 0; pass < 20; ++pass) {
+    const Rhs dx = solver.solve(Rhs(b - m * x));
+    x += dx;
+    ++passes;
+    if (dx.norm() <= 1e-13 * x.norm()) return true;
+  }
+  solver.factorize(m);
+  base = m;
+  ++factorizations;
+  refine = false;
+  if (solver.info() != Eigen::Success) return false;
+  x = solver.solve(b);
+  return true;
+}
+
+/// Factorises m into `solver` unless `solver` holds a factorisation of an earlier matrix with the
+/// same pattern (then refined_solve() refines against it): sets `refine` accordingly. Returns
+/// false if m cannot be factorised. `base` as in refined_solve().
+inline bool factorise_or_reuse(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
+                               Eigen::SparseMatrix<double>& base, std::size_t& pattern,
+                               bool& factored, bool reusable, bool& refine,
+                               std::size_t& factorizations) {
+  const std::size_t hash = pattern_hash(m);
+  refine = factored && reusable && hash == pattern;
+  if (refine) return true;
+  if (hash != pattern) {
+    solver.analyzePattern(m);
+    pattern = hash;
+  }
+  solver.factorize(m);
+  base = m;
+  ++factorizations;
+  factored = solver.info() == Eigen::Success;
+  return factored;
 }
 
 }  // namespace mpm

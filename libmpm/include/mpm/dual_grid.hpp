@@ -108,12 +108,25 @@ struct DualWall {
   /// the per-step work scales with the interface, not with the whole grid.
   Eigen::SparseMatrix<double> grid_active, boundary_active;
   std::vector<int> grid_rows, layer_rows;
-  /// Factorised Schur complement on the active multipliers (held by pointer: Eigen's solvers
-  /// cannot be moved).
-  std::unique_ptr<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>> schur =
-      std::make_unique<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>>();
-  std::size_t pattern_hash = 0;  ///< sparsity of the last factorised S: reuse its ordering
-  double min_cell_size = 0.0;    ///< for the CFL limit
+  /// Inverse of grid_rows / layer_rows (-1: not a row this step), sized to the grids.
+  std::vector<int> grid_row_of, layer_row_of;
+  /// The Schur complement S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha) + shift I on
+  /// the active multipliers is kept as its factors (this step's inverse masses of the kept rows
+  /// and the shift); `schur` holds a factorisation (held by pointer: Eigen's solvers cannot be
+  /// moved) of `schur_base`, which may be an earlier step's S with the same coupling pattern
+  /// (`factored_structure`): the masses change a little from step to step, so S is then solved
+  /// by refinement against it. A checkpoint saves `schur_base` and `factored_structure`.
+  Eigen::VectorXd inv_grid_mass, inv_layer_mass;
+  double schur_shift = 0.0;
+  Eigen::SparseMatrix<double> schur_base;
+  std::unique_ptr<SparseLdlt> schur = std::make_unique<SparseLdlt>();
+  std::size_t pattern_hash = 0;        ///< sparsity of the last factorised S: reuse its ordering
+  std::size_t factored_structure = 0;  ///< patterns of R^A, R^alpha when `schur_base` was formed
+  bool schur_factored = false;         ///< `schur` holds a valid factorisation (maybe older)
+  bool schur_refine = false;           ///< this step's S is solved by refinement
+  std::size_t factorizations = 0;      ///< Schur factorisations so far (for benchmarks)
+  std::size_t refinements = 0;         ///< refinement passes against an earlier factorisation
+  double min_cell_size = 0.0;          ///< for the CFL limit
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
   EnhancedState<D> enh;
