@@ -3,6 +3,9 @@
 // ../shared/tools/yardstick/run.sh measured in the same session.
 //
 //   BM_StandardStep3D/N  : an N^3-cell block in free flight, no walls (the bare step)
+//   BM_StandardStepUSL3D/N : the same with USL, one transfer each way as the yardstick's MLS-MPM
+//                          step (MUSL, the default, maps the momenta back to the grid and
+//                          gathers again: two transfers each way)
 //   BM_FloorStep3D/N/m   : an N x N x 10-cell block resting on a floor under gravity, so 10% of
 //                          the particles are within h of it; m = 0: standard wall on the box face
 //                          (grid line), 1: Blending mortar dual-grid floor, 2: one-way,
@@ -28,14 +31,14 @@ nlohmann::json material() {
           {"poisson_ratio", 0.3}};
 }
 
-mpm::Scene block_scene(int cells) {
+mpm::Scene block_scene(int cells, const char* update = "musl") {
   // Grid box with a one-cell margin around a cube of `cells`^3 filled cells.
   const double h = 1.0 / cells;
   const nlohmann::json doc = {
       {"dimension", 3},
       {"grid", {{"min", {-h, -h, -h}}, {"max", {1.0 + h, 1.0 + h, 1.0 + h}}, {"spacing", h}}},
       {"shape_function", "bspline2"},
-      {"scheme", {{"update", "musl"}, {"transfer", "apic"}}},
+      {"scheme", {{"update", update}, {"transfer", "apic"}}},
       {"materials", {material()}},
       {"bodies",
        {{{"material", "m"},
@@ -97,8 +100,8 @@ mpm::Scene floor_scene(int cells, int method) {
   return mpm::parse_scene(doc, "<bench>");
 }
 
-void BM_StandardStep3D(benchmark::State& state) {
-  const mpm::Scene scene = block_scene(static_cast<int>(state.range(0)));
+void standard_step(benchmark::State& state, const char* update) {
+  const mpm::Scene scene = block_scene(static_cast<int>(state.range(0)), update);
   mpm::Solver<3> solver(scene);
   const double dt = solver.stable_dt(0.3);
   for (auto _ : state) solver.step(dt);
@@ -106,12 +109,15 @@ void BM_StandardStep3D(benchmark::State& state) {
                           static_cast<int64_t>(solver.particle_count()));
   state.counters["particles"] = static_cast<double>(solver.particle_count());
 }
+void BM_StandardStep3D(benchmark::State& state) { standard_step(state, "musl"); }
 BENCHMARK(BM_StandardStep3D)
     ->Arg(16)
     ->Arg(32)
     ->Arg(48)
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
+void BM_StandardStepUSL3D(benchmark::State& state) { standard_step(state, "usl"); }
+BENCHMARK(BM_StandardStepUSL3D)->Arg(32)->Unit(benchmark::kMillisecond)->UseRealTime();
 
 void BM_FloorStep3D(benchmark::State& state) {
   const mpm::Scene scene =

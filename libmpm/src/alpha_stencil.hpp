@@ -6,16 +6,6 @@
 
 namespace mpm {
 
-/// Boundary-grid basis of one particle: values and physical gradients at its natural
-/// coordinates (the isoparametric map of the cell).
-template <int D>
-struct AlphaStencil {
-  int count = 0;
-  int node[6] = {};
-  double N[6] = {};
-  Vec<D> dN[6];
-};
-
 template <int D>
 AlphaStencil<D> alpha_stencil(const DualWall<D>& w, int cell, const Eigen::Vector3d& xi) {
   const mpmgeom::AlphaBasis b = mpmgeom::alpha_basis(D, xi);

@@ -176,9 +176,20 @@ void Solver<D>::locate_in_layers() {
       }
     }
   });
+  layer_list_.clear();
   for (std::size_t p = 0; p < P.size(); ++p) {
-    if (P.layer_wall[p] >= 0) ++dual_[P.layer_wall[p]].layer_particles;
+    if (P.layer_wall[p] < 0) continue;
+    ++dual_[P.layer_wall[p]].layer_particles;
+    layer_list_.push_back(static_cast<int>(p));
   }
+  layer_stencil_.resize(layer_list_.size());
+  tbb::parallel_for(
+      tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+          const int p = layer_list_[i];
+          layer_stencil_[i] = alpha_stencil(dual_[P.layer_wall[p]], P.layer_cell[p], P.layer_xi[p]);
+        }
+      });
 }
 
 template <int D>
@@ -198,10 +209,10 @@ void Solver<D>::layer_scatter(bool with_force) {
   }
   if (dual_.empty()) return;
   // Few particles live in layers; a serial loop keeps the scatter free of races.
-  for (std::size_t p = 0; p < P.size(); ++p) {
-    if (P.layer_wall[p] < 0) continue;
+  for (std::size_t i = 0; i < layer_list_.size(); ++i) {
+    const auto p = static_cast<std::size_t>(layer_list_[i]);
     DualWall<D>& w = dual_[P.layer_wall[p]];
-    const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
+    const AlphaStencil<D>& st = layer_stencil_[i];
     const double m = P.mass[p];
     const Vec<D> v = P.velocity[p];
     // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
@@ -466,7 +477,14 @@ void Solver<D>::layer_couple(bool remapped) {
       for (Eigen::Index r = 0; r < ng; ++r) a.row(r) = va[w.grid_rows[r]].transpose();
       for (Eigen::Index r = 0; r < nl; ++r) b.row(r) = valpha[w.layer_rows[r]].transpose();
       const Block gap = w.grid_active.transpose() * a - w.boundary_active.transpose() * b;
-      Block lambda = w.schur->solve(gap);
+      // The D columns are independent solves with one factorisation (whose solve only reads
+      // it): one per core.
+      auto factor_solve = [&](const Block& rhs) {
+        Block x(rhs.rows(), D);
+        tbb::parallel_for(0, D, [&](int d) { x.col(d) = w.schur->solve(rhs.col(d)); });
+        return x;
+      };
+      Block lambda = factor_solve(gap);
       if (w.schur_refine) {
         // x += F^-1 (gap - S x) until the update is below 1e-13 of x; if that stalls (the
         // masses moved too far from the factorised step's), factorise this step's S.
@@ -481,7 +499,7 @@ void Solver<D>::layer_couple(bool remapped) {
         };
         bool converged = false;
         for (int pass = 0; pass < 20 && !converged; ++pass) {
-          const Block dx = w.schur->solve(Block(gap - apply(lambda)));
+          const Block dx = factor_solve(Block(gap - apply(lambda)));
           lambda += dx;
           ++w.refinements;
           converged = dx.norm() <= 1e-13 * lambda.norm();
@@ -489,7 +507,7 @@ void Solver<D>::layer_couple(bool remapped) {
         if (!converged) {
           if (!factorise_schur(w, mortar)) return;
           w.schur_refine = false;
-          lambda = w.schur->solve(gap);
+          lambda = factor_solve(gap);
         }
       }
       const Block da = w.grid_active * lambda;
@@ -598,42 +616,43 @@ void Solver<D>::layer_gather(double dt) {
   const bool usl = scene_.update == UpdateScheme::usl;
   const double alpha = scene_.flip_blend;
   // Each particle reads the nodes and writes only itself: in parallel.
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
-    for (std::size_t p = r.begin(); p != r.end(); ++p) {
-      if (P.layer_wall[p] < 0) continue;
-      const DualWall<D>& w = dual_[P.layer_wall[p]];
-      const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
-      Vec<D> value = Vec<D>::Zero(), increment = Vec<D>::Zero();
-      Mat<D> L = Mat<D>::Zero();
-      for (int k = 0; k < st.count; ++k) {
-        const int n = st.node[k];
-        value += st.N[k] * w.velocity_new[n];
-        increment += st.N[k] * (w.velocity_new[n] - w.velocity[n]);
-        L += w.velocity_new[n] * st.dN[k].transpose();
-      }
-      if (w.enhanced) {
-        // The enhancement adds to what gather() took from the standard grid.
-        if (apic) {
-          // C_p stays the standard grid's: the enhancement is the wall's sharp layer, which the
-          // standard grid's affine transfer cannot carry (its scatter leaves C_p out too).
-          P.velocity[p] += value;
-        } else {
-          P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
+  tbb::parallel_for(
+      tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+          const auto p = static_cast<std::size_t>(layer_list_[i]);
+          const DualWall<D>& w = dual_[P.layer_wall[p]];
+          const AlphaStencil<D>& st = layer_stencil_[i];
+          Vec<D> value = Vec<D>::Zero(), increment = Vec<D>::Zero();
+          Mat<D> L = Mat<D>::Zero();
+          for (int k = 0; k < st.count; ++k) {
+            const int n = st.node[k];
+            value += st.N[k] * w.velocity_new[n];
+            increment += st.N[k] * (w.velocity_new[n] - w.velocity[n]);
+            L += w.velocity_new[n] * st.dN[k].transpose();
+          }
+          if (w.enhanced) {
+            // The enhancement adds to what gather() took from the standard grid.
+            if (apic) {
+              // C_p stays the standard grid's: the enhancement is the wall's sharp layer, which the
+              // standard grid's affine transfer cannot carry (its scatter leaves C_p out too).
+              P.velocity[p] += value;
+            } else {
+              P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
+            }
+            P.displacement[p] += dt * value;
+            if (usl) P.velocity_gradient[p] += L;
+            continue;
+          }
+          if (apic) {
+            P.velocity[p] = value;
+            if (usl) P.affine[p] = L;  // MUSL: from the remapped field, layer_gather_gradient()
+          } else {
+            P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
+          }
+          P.displacement[p] = dt * value;
+          if (usl) P.velocity_gradient[p] = L;
         }
-        P.displacement[p] += dt * value;
-        if (usl) P.velocity_gradient[p] += L;
-        continue;
-      }
-      if (apic) {
-        P.velocity[p] = value;
-        if (usl) P.affine[p] = L;  // MUSL: from the remapped field, layer_gather_gradient()
-      } else {
-        P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
-      }
-      P.displacement[p] = dt * value;
-      if (usl) P.velocity_gradient[p] = L;
-    }
-  });
+      });
 }
 
 template <int D>
@@ -654,21 +673,24 @@ template <int D>
 void Solver<D>::layer_gather_gradient() {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
-    for (std::size_t p = r.begin(); p != r.end(); ++p) {
-      if (P.layer_wall[p] < 0) continue;
-      const DualWall<D>& w = dual_[P.layer_wall[p]];
-      const AlphaStencil<D> st = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
-      Mat<D> L = Mat<D>::Zero();
-      for (int k = 0; k < st.count; ++k) L += w.velocity[st.node[k]] * st.dN[k].transpose();
-      if (w.enhanced) {
-        P.velocity_gradient[p] += L;  // on top of the standard grid's
-        continue;
-      }
-      P.velocity_gradient[p] = L;
-      if (apic) P.affine[p] = layer_affine(w, st, L, P.velocity[p], mass_threshold_);
-    }
-  });
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256),
+                    [&](const auto& r) {
+                      for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                        const auto p = static_cast<std::size_t>(layer_list_[i]);
+                        const DualWall<D>& w = dual_[P.layer_wall[p]];
+                        const AlphaStencil<D>& st = layer_stencil_[i];
+                        Mat<D> L = Mat<D>::Zero();
+                        for (int k = 0; k < st.count; ++k)
+                          L += w.velocity[st.node[k]] * st.dN[k].transpose();
+                        if (w.enhanced) {
+                          P.velocity_gradient[p] += L;  // on top of the standard grid's
+                          continue;
+                        }
+                        P.velocity_gradient[p] = L;
+                        if (apic)
+                          P.affine[p] = layer_affine(w, st, L, P.velocity[p], mass_threshold_);
+                      }
+                    });
 }
 
 #define MPM_DUAL_GRID_MEMBERS(D)                                                  \

@@ -79,9 +79,10 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   Triplets cross;
   dispatch_shape(scene_.shape, [&](auto shape) {
     using Shape = decltype(shape);
-    for (std::size_t p = 0; p < P.size(); ++p) {
+    for (std::size_t i = 0; i < layer_list_.size(); ++i) {
+      const auto p = static_cast<std::size_t>(layer_list_[i]);
       if (P.layer_wall[p] != wall_index) continue;
-      const AlphaStencil<D> as = alpha_stencil(w, P.layer_cell[p], P.layer_xi[p]);
+      const AlphaStencil<D>& as = layer_stencil_[i];
       const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
       const double m = P.mass[p];
       st.for_each(grid, [&](int node, double N, const Vec<D>&, const Vec<D>&) {

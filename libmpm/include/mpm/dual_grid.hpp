@@ -16,6 +16,16 @@
 
 namespace mpm {
 
+/// Boundary-grid basis of one particle: values and physical gradients at its natural
+/// coordinates (the isoparametric map of the cell).
+template <int D>
+struct AlphaStencil {
+  int count = 0;
+  int node[6] = {};
+  double N[6] = {};
+  Vec<D> dN[6];
+};
+
 using SparseLdlt = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 
 /// Per-step state of the Enhanced velocity field method (enhanced.cpp). Compact indices: the

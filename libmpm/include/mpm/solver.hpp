@@ -174,6 +174,10 @@ class Solver final : public Simulation {
   std::vector<std::vector<std::pair<int, int>>> wall_ghosts_;
   std::vector<Eigen::Vector3d> wall_impulse_;  ///< box walls, then dual-wall parts
   std::vector<DualWall<D>> dual_;
+  /// This step's boundary-layer particles (in index order) and their boundary-grid bases,
+  /// computed once by locate_in_layers() for the scatters, gathers and the remap of the step.
+  std::vector<int> layer_list_;
+  std::vector<AlphaStencil<D>> layer_stencil_;
   /// Signed-distance walls (the baseline): standard-grid nodes on or behind the surface, within
   /// reach of the kernel, with the unit normal into the material at each.
   struct SdfWall {
