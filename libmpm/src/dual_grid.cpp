@@ -255,11 +255,11 @@ void Solver<D>::layer_scatter(bool with_force) {
       if (with_force) {
         w.mass[node] += N * m;
         w.force[node] += vs * st.dN[k] + N * mb;
-        const int i = w.wall_index_of_node[node];
-        if (touch && i >= 0) {
+        const int wi = w.wall_index_of_node[node];
+        if (touch && wi >= 0) {
           const Vec<D> d = P.position[p] - w.position[node];
-          const double normal = d.dot(w.wall_normal[i]);
-          if ((d - normal * w.wall_normal[i]).norm() <= window) {
+          const double normal = d.dot(w.wall_normal[wi]);
+          if ((d - normal * w.wall_normal[wi]).norm() <= window) {
             w.touch_gap[node] = std::min(w.touch_gap[node], normal - reach);
           }
         }
@@ -497,29 +497,14 @@ void Solver<D>::layer_couple(bool remapped) {
           }
           return Block(y + w.schur_shift * x);
         };
-        // Each pass shrinks the update by about the relative change of S since the factorised
-        // step (the rate): in a flow whose layer masses change fast that is slow, and a
-        // factorisation costs about as much as 10-20 passes, so refinement gives up as soon as
-        // the rate says it would need more than kMaxPasses in all (the debris scene spent 70% of
-        // its run in 20-pass refinements that then factorised anyway).
-        constexpr int kMaxPasses = 6;
-        constexpr double kTolerance = 1e-13;
-        bool converged = false;
-        double previous = lambda.norm();
-        for (int pass = 1; pass <= kMaxPasses && !converged; ++pass) {
+        Refinement refinement(lambda.norm());  // sparse_pattern.hpp
+        for (int pass = 1;; ++pass) {
           const Block dx = factor_solve(Block(gap - apply(lambda)));
           lambda += dx;
           ++w.refinements;
-          const double update = dx.norm(), size = lambda.norm();
-          converged = update <= kTolerance * size;
-          if (converged) break;
-          const double rate = update / previous;
-          previous = update;
-          if (!(rate < 0.5)) break;  // stalled (or not a number)
-          const double needed = std::log(kTolerance * size / update) / std::log(rate);
-          if (pass + needed > kMaxPasses) break;
+          if (!refinement.next(pass, dx.norm(), lambda.norm())) break;
         }
-        if (!converged) {
+        if (!refinement.converged()) {
           if (!factorise_schur(w, mortar)) return;
           w.schur_refine = false;
           lambda = factor_solve(gap);
