@@ -1,5 +1,8 @@
 #include "mpm/checkpoint.hpp"
 
+#include <fcntl.h>
+#include <unistd.h>
+
 #include <stdexcept>
 
 #include "hdf5_util.hpp"
@@ -21,6 +24,17 @@ const typename Map::mapped_type& lookup(const Map& map, const std::string& key, 
     }
   }
   return it->second;
+}
+
+// Asks the kernel to put a file (or a directory's entries) on the disk: H5Fflush hands the data
+// to the operating system only, so a power cut after the rename could leave a checkpoint whose
+// name is there and whose contents are not.
+bool sync_to_disk(const std::filesystem::path& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return false;
+  const bool synced = ::fsync(fd) == 0;
+  ::close(fd);
+  return synced;
 }
 
 }  // namespace
@@ -67,9 +81,14 @@ void write_checkpoint(const std::filesystem::path& file, const Checkpoint& check
     }
     if (!good || H5Fflush(h5.get(), H5F_SCOPE_GLOBAL) < 0) throw fail();
   }
+  // On the disk before it takes the checkpoint's name, and the name on the disk after.
+  if (!sync_to_disk(tmp)) throw fail();
   std::error_code error;
   std::filesystem::rename(tmp, file, error);
   if (error) throw fail();
+  const std::filesystem::path directory =
+      file.has_parent_path() ? file.parent_path() : std::filesystem::path(".");
+  if (!sync_to_disk(directory)) throw fail();
 }
 
 Checkpoint read_checkpoint(const std::filesystem::path& file, bool texts_only) {
