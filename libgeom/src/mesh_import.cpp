@@ -552,7 +552,8 @@ struct Limits {
 };
 
 // Generous for real meshes (assimp needs ~10-20 bytes of memory per byte of STL, and reads
-// ~100 MB/s), tight enough that a pathological file fails in seconds, not after swapping; never
+// ~100 MB/s: 20 s + 1 s per MB is 10-100 times what it takes), tight enough that a pathological
+// file fails in seconds, not after swapping (a hang in a small file waited 120 s before); never
 // more than 3/4 of the machine's memory, so that the budget, not the kernel, stops the reader.
 Limits limits_for(const fs::path& file) {
   std::error_code ec;
@@ -562,7 +563,7 @@ Limits limits_for(const fs::path& file) {
       static_cast<double>(::sysconf(_SC_PHYS_PAGES)) * static_cast<double>(::sysconf(_SC_PAGESIZE));
   double memory = std::max(4.0 * (1ull << 30), 64.0 * bytes);
   if (physical > 0.0) memory = std::min(memory, 0.75 * physical);
-  return {static_cast<std::uint64_t>(memory), 120.0 + bytes / 1e6};
+  return {static_cast<std::uint64_t>(memory), 20.0 + bytes / 1e6};
 }
 
 void write_all(int fd, const void* data, std::size_t n) {
