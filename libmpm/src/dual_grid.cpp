@@ -67,12 +67,13 @@ void Solver<D>::setup_dual_walls() {
     w.centroid.assign(n, Vec<D>::Zero());
     w.touch_gap.assign(n, std::numeric_limits<double>::infinity());
     w.enhanced = spec.method == CouplingMethod::enhanced;
-    w.grid_row_of.assign(grid.size(), -1);
-    w.layer_row_of.assign(n, -1);
     if (w.enhanced) {
       w.momentum_new.assign(n, Vec<D>::Zero());
       w.enh.a_row_of.assign(grid.size(), -1);
       w.enh.alpha_col_of.assign(n, -1);
+    } else {
+      w.grid_row_of.assign(grid.size(), -1);
+      w.layer_row_of.assign(n, -1);
     }
 
     // Gamma nodes and the part each reports to (from the first wall facet that holds it).
@@ -486,8 +487,9 @@ void Solver<D>::layer_couple(bool remapped) {
       };
       Block lambda = factor_solve(gap);
       if (w.schur_refine) {
-        // x += F^-1 (gap - S x) until the update is below 1e-13 of x; if that stalls (the
-        // masses moved too far from the factorised step's), factorise this step's S.
+        // x += F^-1 (gap - S x) while Refinement allows (to an update below 1e-13 of x);
+        // unconverged (the masses moved too far from the factorised step's), factorise this
+        // step's S.
         auto apply = [&](const Block& x) {
           Block y = w.grid_active.transpose() *
                     (w.inv_grid_mass.asDiagonal() * (w.grid_active * x)).eval();
@@ -608,6 +610,28 @@ Mat<D> layer_affine(const DualWall<D>& w, const AlphaStencil<D>& st, const Mat<D
 
 // Boundary-grid particles: new velocity (PIC/FLIP blend or APIC with C_p = grad v, exact for the
 // linear alpha basis), displacement, and for USL the velocity gradient.
+namespace {
+
+// sum_k v_k grad N_k^T over a boundary-grid stencil, summed in plain scalars (Eigen 3-vector
+// temporaries cost a store-forwarding stall per node: docs/performance.md).
+template <int D>
+Mat<D> stencil_gradient(const std::vector<Vec<D>>& v, const AlphaStencil<D>& st) {
+  double sum[D][D] = {};
+  for (int k = 0; k < st.count; ++k) {
+    const double* vk = v[st.node[k]].data();
+    for (int a = 0; a < D; ++a) {
+      for (int b = 0; b < D; ++b) sum[a][b] += vk[a] * st.dN[k][b];
+    }
+  }
+  Mat<D> L;
+  for (int a = 0; a < D; ++a) {
+    for (int b = 0; b < D; ++b) L(a, b) = sum[a][b];
+  }
+  return L;
+}
+
+}  // namespace
+
 template <int D>
 void Solver<D>::layer_gather(double dt) {
   auto& P = particles;
@@ -616,43 +640,48 @@ void Solver<D>::layer_gather(double dt) {
   const bool usl = scene_.update == UpdateScheme::usl;
   const double alpha = scene_.flip_blend;
   // Each particle reads the nodes and writes only itself: in parallel.
-  tbb::parallel_for(
-      tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-          const auto p = static_cast<std::size_t>(layer_list_[i]);
-          const DualWall<D>& w = dual_[P.layer_wall[p]];
-          const AlphaStencil<D>& st = layer_stencil_[i];
-          Vec<D> value = Vec<D>::Zero(), increment = Vec<D>::Zero();
-          Mat<D> L = Mat<D>::Zero();
-          for (int k = 0; k < st.count; ++k) {
-            const int n = st.node[k];
-            value += st.N[k] * w.velocity_new[n];
-            increment += st.N[k] * (w.velocity_new[n] - w.velocity[n]);
-            L += w.velocity_new[n] * st.dN[k].transpose();
-          }
-          if (w.enhanced) {
-            // The enhancement adds to what gather() took from the standard grid.
-            if (apic) {
-              // C_p stays the standard grid's: the enhancement is the wall's sharp layer, which the
-              // standard grid's affine transfer cannot carry (its scatter leaves C_p out too).
-              P.velocity[p] += value;
-            } else {
-              P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
-            }
-            P.displacement[p] += dt * value;
-            if (usl) P.velocity_gradient[p] += L;
-            continue;
-          }
-          if (apic) {
-            P.velocity[p] = value;
-            if (usl) P.affine[p] = L;  // MUSL: from the remapped field, layer_gather_gradient()
-          } else {
-            P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
-          }
-          P.displacement[p] = dt * value;
-          if (usl) P.velocity_gradient[p] = L;
-        }
-      });
+  auto gather_one = [&](std::size_t i) {
+    const auto p = static_cast<std::size_t>(layer_list_[i]);
+    const DualWall<D>& w = dual_[P.layer_wall[p]];
+    const AlphaStencil<D>& st = layer_stencil_[i];
+    double sum[D] = {}, change[D] = {};
+    for (int k = 0; k < st.count; ++k) {
+      const double* v_new = w.velocity_new[st.node[k]].data();
+      const double* v_old = w.velocity[st.node[k]].data();
+      for (int a = 0; a < D; ++a) {
+        sum[a] += st.N[k] * v_new[a];
+        change[a] += st.N[k] * (v_new[a] - v_old[a]);
+      }
+    }
+    const Vec<D> value = Eigen::Map<const Vec<D>>(sum);
+    const Vec<D> increment = Eigen::Map<const Vec<D>>(change);
+    const Mat<D> L = usl ? stencil_gradient(w.velocity_new, st) : Mat<D>::Zero();
+    if (w.enhanced) {
+      // The enhancement adds to what gather() took from the standard grid.
+      if (apic) {
+        // C_p stays the standard grid's: the enhancement is the wall's sharp layer, which the
+        // standard grid's affine transfer cannot carry (its scatter leaves C_p out too).
+        P.velocity[p] += value;
+      } else {
+        P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
+      }
+      P.displacement[p] += dt * value;
+      if (usl) P.velocity_gradient[p] += L;
+      return;
+    }
+    if (apic) {
+      P.velocity[p] = value;
+      if (usl) P.affine[p] = L;  // MUSL: from the remapped field, layer_gather_gradient()
+    } else {
+      P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
+    }
+    P.displacement[p] = dt * value;
+    if (usl) P.velocity_gradient[p] = L;
+  };
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256),
+                    [&](const auto& r) {
+                      for (std::size_t i = r.begin(); i != r.end(); ++i) gather_one(i);
+                    });
 }
 
 template <int D>
@@ -673,23 +702,21 @@ template <int D>
 void Solver<D>::layer_gather_gradient() {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
+  auto gather_one = [&](std::size_t i) {
+    const auto p = static_cast<std::size_t>(layer_list_[i]);
+    const DualWall<D>& w = dual_[P.layer_wall[p]];
+    const AlphaStencil<D>& st = layer_stencil_[i];
+    const Mat<D> L = stencil_gradient(w.velocity, st);
+    if (w.enhanced) {
+      P.velocity_gradient[p] += L;  // on top of the standard grid's
+      return;
+    }
+    P.velocity_gradient[p] = L;
+    if (apic) P.affine[p] = layer_affine(w, st, L, P.velocity[p], mass_threshold_);
+  };
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256),
                     [&](const auto& r) {
-                      for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                        const auto p = static_cast<std::size_t>(layer_list_[i]);
-                        const DualWall<D>& w = dual_[P.layer_wall[p]];
-                        const AlphaStencil<D>& st = layer_stencil_[i];
-                        Mat<D> L = Mat<D>::Zero();
-                        for (int k = 0; k < st.count; ++k)
-                          L += w.velocity[st.node[k]] * st.dN[k].transpose();
-                        if (w.enhanced) {
-                          P.velocity_gradient[p] += L;  // on top of the standard grid's
-                          continue;
-                        }
-                        P.velocity_gradient[p] = L;
-                        if (apic)
-                          P.affine[p] = layer_affine(w, st, L, P.velocity[p], mass_threshold_);
-                      }
+                      for (std::size_t i = r.begin(); i != r.end(); ++i) gather_one(i);
                     });
 }
 
