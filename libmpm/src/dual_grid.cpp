@@ -345,16 +345,9 @@ bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar) {
     S += bt * layer;
   }
   for (Eigen::Index i = 0; i < S.rows(); ++i) S.coeffRef(i, i) += w.schur_shift;
-  const std::size_t hash = pattern_hash(S);
-  if (hash != w.pattern_hash) {
-    w.schur->analyzePattern(S);
-    w.pattern_hash = hash;
-  }
-  w.schur->factorize(S);
-  ++w.factorizations;
-  w.schur_base = std::move(S);
-  w.schur_factored = w.schur->info() == Eigen::Success;
-  if (!w.schur_factored) {
+  bool refining = false;  // not reusable: layer_couple() decided to factorise
+  if (!factorise_or_reuse(*w.schur, S, w.schur_base, w.pattern_hash, w.schur_factored, false,
+                          refining, w.factorizations)) {
     fault_ = "dual wall \"" + w.spec->name + "\": the Phi coupling matrix does not factorise";
   }
   return w.schur_factored;
@@ -499,14 +492,7 @@ void Solver<D>::layer_couple(bool remapped) {
           }
           return Block(y + w.schur_shift * x);
         };
-        Refinement refinement(lambda.norm());  // sparse_pattern.hpp
-        for (int pass = 1;; ++pass) {
-          const Block dx = factor_solve(Block(gap - apply(lambda)));
-          lambda += dx;
-          ++w.refinements;
-          if (!refinement.next(pass, dx.norm(), lambda.norm())) break;
-        }
-        if (!refinement.converged()) {
+        if (!refine(gap, lambda, apply, factor_solve, w.refinements)) {  // sparse_pattern.hpp
           if (!factorise_schur(w, mortar)) return;
           w.schur_refine = false;
           lambda = factor_solve(gap);
@@ -608,8 +594,6 @@ Mat<D> layer_affine(const DualWall<D>& w, const AlphaStencil<D>& st, const Mat<D
 
 }  // namespace
 
-// Boundary-grid particles: new velocity (PIC/FLIP blend or APIC with C_p = grad v, exact for the
-// linear alpha basis), displacement, and for USL the velocity gradient.
 namespace {
 
 // sum_k v_k grad N_k^T over a boundary-grid stencil, summed in plain scalars (Eigen 3-vector
@@ -632,6 +616,8 @@ Mat<D> stencil_gradient(const std::vector<Vec<D>>& v, const AlphaStencil<D>& st)
 
 }  // namespace
 
+// Boundary-grid particles: new velocity (PIC/FLIP blend or APIC with C_p = grad v, exact for the
+// linear alpha basis), displacement, and for USL the velocity gradient.
 template <int D>
 void Solver<D>::layer_gather(double dt) {
   auto& P = particles;

@@ -54,27 +54,37 @@ class Refinement {
   bool converged_ = false;
 };
 
+/// Refinement passes x += solve(b - apply(x)) from the x in hand, as long as Refinement allows;
+/// `apply` multiplies by this step's matrix and `solve` applies the factorisation in hand (an
+/// earlier step's). True if converged; the caller factorises otherwise.
+template <class Rhs, class Apply, class Solve>
+bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& passes) {
+  Refinement refinement(x.norm());
+  for (int pass = 1;; ++pass) {
+    const Rhs dx = solve(Rhs(b - apply(x)));
+    x += dx;
+    ++passes;
+    if (!refinement.next(pass, dx.norm(), x.norm())) break;
+  }
+  return refinement.converged();
+}
+
 /// Solves m x = b with `solver`, which holds a factorisation of m itself or, when `refine`, of
 /// an earlier matrix with the same pattern (the previous step's: the masses change a little
-/// from step to step). Refinement passes x += F^-1 (b - m x) run as long as Refinement allows;
-/// unconverged (the matrices are too far apart), m is factorised and `refine` cleared. Returns
-/// false if m cannot be factorised. `base` keeps the matrix the solver's factorisation is of (a
-/// checkpoint saves it, so a resumed run refines against the same one). `passes` and
-/// `factorizations` count the work done (reported by the benchmarks).
+/// from step to step), refined then by refine(); unconverged (the matrices are too far apart),
+/// m is factorised and `refine` cleared. Returns false if m cannot be factorised. `base` keeps
+/// the matrix the solver's factorisation is of (a checkpoint saves it, so a resumed run refines
+/// against the same one). `passes` and `factorizations` count the work done (reported by the
+/// benchmarks).
 template <class Rhs>
 bool refined_solve(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
                    Eigen::SparseMatrix<double>& base, bool& refine, const Rhs& b, Rhs& x,
                    std::size_t& passes, std::size_t& factorizations) {
   x = solver.solve(b);
   if (!refine) return true;
-  Refinement refinement(x.norm());
-  for (int pass = 1;; ++pass) {
-    const Rhs dx = solver.solve(Rhs(b - m * x));
-    x += dx;
-    ++passes;
-    if (!refinement.next(pass, dx.norm(), x.norm())) break;
-  }
-  if (refinement.converged()) return true;
+  const auto product = [&](const Rhs& y) { return Rhs(m * y); };
+  const auto factor = [&](const Rhs& r) { return Rhs(solver.solve(r)); };
+  if (mpm::refine(b, x, product, factor, passes)) return true;
   solver.factorize(m);
   base = m;
   ++factorizations;
