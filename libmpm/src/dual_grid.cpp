@@ -313,21 +313,19 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
   for (auto& w : dual_) {
     if (w.enhanced) continue;  // multiplier constraints in enhanced_solve()
     std::vector<Vec<D>>& v = w.*velocity;
-    std::visit(
-        [&](const auto& condition) {
-          for (std::size_t i = 0; i < w.wall_nodes.size(); ++i) {
-            const int n = w.wall_nodes[i];
-            if (!held_by_wall(w, n, mass_threshold_)) continue;
-            const double m = w.mass[n];
-            const Vec<D> before = v[n];
-            v[n] = constrain_velocity<D>(condition, w.spec->contact.separable, w.wall_normal[i],
+    for (std::size_t i = 0; i < w.wall_nodes.size(); ++i) {
+      const int n = w.wall_nodes[i];
+      if (!held_by_wall(w, n, mass_threshold_)) continue;
+      const int part = w.wall_node_part[i];
+      const Vec<D> before = v[n];
+      v[n] = std::visit(
+          [&](const auto& condition) {
+            return constrain_velocity<D>(condition, w.spec->contact.separable, w.wall_normal[i],
                                          before);
-            if (record) {
-              wall_impulse_[w.impulse_offset + w.wall_node_part[i]] += pad3<D>(m * (v[n] - before));
-            }
-          }
-        },
-        w.spec->contact.condition);
+          },
+          w.spec->condition(part));
+      if (record) wall_impulse_[w.impulse_offset + part] += pad3<D>(w.mass[n] * (v[n] - before));
+    }
   }
 }
 

@@ -258,11 +258,16 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
   Block vs = Block::Zero(ns, D), vna(na, D), impulse = Block::Zero(k, D), load = Block::Zero(k, D);
   std::vector<Contact> state(static_cast<std::size_t>(k), Contact::off);
   const WallContact& contact = w.spec->contact;
-  const bool sticky = std::holds_alternative<Sticky>(contact.condition);
-  const double mu_f = std::holds_alternative<Friction>(contact.condition)
-                          ? std::get<Friction>(contact.condition).mu
-                          : 0.0;
-  const Contact on = sticky || mu_f > 0.0 ? Contact::stick : Contact::normal;
+  // Each multiplier takes the condition of its part: its friction coefficient (0: slip) and the
+  // state it starts in when it comes into contact (stick for sticky and frictional walls).
+  std::vector<double> mu_of(static_cast<std::size_t>(k), 0.0);
+  std::vector<Contact> on_of(static_cast<std::size_t>(k), Contact::normal);
+  for (std::size_t i = 0; i < static_cast<std::size_t>(k); ++i) {
+    const WallCondition& condition = w.spec->condition(e.part[i]);
+    const bool sticky = std::holds_alternative<Sticky>(condition);
+    if (const auto* f = std::get_if<Friction>(&condition)) mu_of[i] = f->mu;
+    if (sticky || mu_of[i] > 0.0) on_of[i] = Contact::stick;
+  }
 
   // Solve for the current contact states (and friction loads); returns false if the system
   // could not be factorised.
@@ -394,13 +399,14 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
         const auto mu = static_cast<std::size_t>(e.multipliers[static_cast<std::size_t>(i)]);
         if (mu < total && e.previous_state[mu] != 0xFF) {
           const auto s = static_cast<Contact>(e.previous_state[mu]);
-          state[static_cast<std::size_t>(i)] = s == Contact::off ? Contact::off : on;
+          state[static_cast<std::size_t>(i)] =
+              s == Contact::off ? Contact::off : on_of[static_cast<std::size_t>(i)];
         } else if (g.row(i).dot(e.normal[static_cast<std::size_t>(i)].transpose()) < 0.0) {
-          state[static_cast<std::size_t>(i)] = on;
+          state[static_cast<std::size_t>(i)] = on_of[static_cast<std::size_t>(i)];
         }
       }
     } else {
-      std::fill(state.begin(), state.end(), on);
+      state = on_of;
     }
     // Active set: release multipliers that pull (separable), add those whose gap closes, and
     // switch between stick and Coulomb slip; a few passes settle it.
@@ -418,7 +424,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
         const double jn = total.dot(n);
         if (s == Contact::off) {
           if (contact.separable && g.row(i).dot(n.transpose()) < 0.0) {
-            s = on;
+            s = on_of[static_cast<std::size_t>(i)];
             changed = true;
           }
           continue;
@@ -429,6 +435,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
           changed = true;
           continue;
         }
+        const double mu_f = mu_of[static_cast<std::size_t>(i)];
         if (mu_f <= 0.0) continue;
         const double limit = mu_f * std::abs(jn);
         if (s == Contact::stick) {

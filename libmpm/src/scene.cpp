@@ -6,6 +6,7 @@
 #include "mpm/boundary_package.hpp"
 #include "mpmgeom/locator.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <numbers>
@@ -388,9 +389,21 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
 
 /// touch: whether the wall decides contact by touch (dual-grid Blending and Enhanced walls);
 /// box and sdf walls act on every node near them, as standard MPM does.
+WallCondition read_condition(Reader& r) {
+  const std::string condition = r.choice("condition", {"sticky", "slip", "friction"});
+  if (condition == "friction") {
+    const double mu = r.number("mu");
+    if (!(mu >= 0.0)) r.fail_at(r.child("mu"), "expected a friction coefficient >= 0");
+    return Friction{mu};
+  }
+  if (r.has("mu")) r.fail_at(r.child("mu"), "only used with \"condition\": \"friction\"");
+  if (condition == "sticky") return Sticky{};
+  return Slip{};
+}
+
 WallContact read_contact(Reader& r, bool touch) {
   WallContact contact;
-  const std::string condition = r.choice("condition", {"sticky", "slip", "friction"});
+  contact.condition = read_condition(r);
   contact.separable = r.boolean("separable", false);
   if (r.has("touch_tolerance")) {
     if (!touch) {
@@ -400,19 +413,6 @@ WallContact read_contact(Reader& r, bool touch) {
     contact.touch_tolerance = r.in_range("touch_tolerance", 0.0, 1e6, false);
     if (!contact.separable) {
       r.fail_at(r.child("touch_tolerance"), "only used with \"separable\": true");
-    }
-  }
-  if (condition == "friction") {
-    contact.condition = Friction{r.number("mu")};
-    if (std::get<Friction>(contact.condition).mu < 0.0) {
-      r.fail_at(r.child("mu"), "expected a friction coefficient >= 0");
-    }
-  } else {
-    if (r.has("mu")) r.fail_at(r.child("mu"), "only used with \"condition\": \"friction\"");
-    if (condition == "sticky") {
-      contact.condition = Sticky{};
-    } else {
-      contact.condition = Slip{};
     }
   }
   return contact;
@@ -561,6 +561,29 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
   }
   surface.finish();
   wall.package = std::move(package);
+
+  // "parts": {"barrier": {"condition": ..., "mu": ...}}: another condition on a named part.
+  const std::vector<std::string>& names = wall.package->layer.part_names;
+  wall.part_condition.assign(std::max<std::size_t>(names.size(), 1), wall.contact.condition);
+  if (r.has("parts")) {
+    if (wall.method == CouplingMethod::sdf) {
+      r.fail_at(r.child("parts"), "sdf walls take one condition (no parts)");
+    }
+    Reader parts = r.object("parts");
+    std::string known;
+    for (const auto& n : names) known += (known.empty() ? "" : ", ") + n;
+    for (const auto& item : r.required("parts").items()) {
+      const auto at = std::find(names.begin(), names.end(), item.key());
+      if (at == names.end()) {
+        parts.fail_at(parts.child(item.key()), "the surface has no part named \"" + item.key() +
+                                                   "\" (its parts: " + known + ")");
+      }
+      Reader part = parts.object(item.key());
+      wall.part_condition[static_cast<std::size_t>(at - names.begin())] = read_condition(part);
+      part.finish();
+    }
+    parts.finish();
+  }
   return wall;
 }
 

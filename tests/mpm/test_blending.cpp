@@ -745,8 +745,10 @@ class TempDir {
 /// into the material) and remeshed to h by the scene reader. The block (0.3 downhill, 0.2 across,
 /// 0.15 thick) is rotated so that its faces lie along the downhill, across and normal
 /// directions, 1e-6 above the plane.
+/// split > u0: the rectangle is two named parts, "upper" (u0 to split) and "lower" (split to
+/// u1), sharing the edge at split.
 InclineScene incline_3d(double theta_deg, double mu, const std::filesystem::path& dir,
-                        const std::string& method) {
+                        const std::string& method, double split = -1.0) {
   const double theta = theta_deg * std::numbers::pi / 180.0;
   const double phi = 30.0 * std::numbers::pi / 180.0;
   const Eigen::Vector3d axis(std::cos(phi), std::sin(phi), 0.0);
@@ -765,7 +767,15 @@ InclineScene incline_3d(double theta_deg, double mu, const std::filesystem::path
     out.precision(17);
     for (const auto& x : corners) out << "v " << x.x() << ' ' << x.y() << ' ' << x.z() << '\n';
     // (b - a) x (c - a) = (u1 - u0) * 2w * (s x t) = +n: into the material.
-    out << "f 1 2 3\nf 1 3 4\n";
+    if (split > u0) {
+      const Eigen::Vector3d edge[2] = {origin + split * s - w * t, origin + split * s + w * t};
+      for (const auto& x : edge) {
+        out << "v " << x.x() << ' ' << x.y() << ' ' << x.z() << '\n';
+      }
+      out << "o upper\nf 1 5 6\nf 1 6 4\no lower\nf 5 2 3\nf 5 3 6\n";
+    } else {
+      out << "f 1 2 3\nf 1 3 4\n";
+    }
   }
 
   std::vector<Eigen::VectorXd> points;
@@ -806,6 +816,7 @@ struct InclineResult {
   double normal_force = 0.0;    ///< mean wall force along n over the run / (m g cos theta)
   double friction_force = 0.0;  ///< mean wall force uphill / (mu m g cos theta), mu > 0
   double min_distance = 0.0;    ///< smallest signed distance to the wall plane / h
+  double other_parts = 0.0;     ///< |impulse on the wall's other parts| / T / (m g cos theta)
   double seconds = 0.0;
 };
 
@@ -841,6 +852,9 @@ InclineResult run_incline(const InclineScene& in, double theta_deg, double mu) {
   r.normal_force = impulse.template head<D>().dot(n) / T / normal_load;
   r.friction_force =
       mu > 0.0 ? -impulse.template head<D>().dot(downhill) / T / (mu * normal_load) : 0.0;
+  for (std::size_t k = 1; k < s.wall_impulses().size(); ++k) {
+    r.other_parts += s.wall_impulses()[k].norm() / T / normal_load;
+  }
   r.seconds = seconds_since(start);
   return r;
 }
@@ -945,6 +959,51 @@ INSTANTIATE_TEST_SUITE_P(MethodAndFriction, BlendingIncline,
                          [](const auto& p) {
                            return std::string(std::get<0>(p.param)) +
                                   (std::get<1>(p.param) > 0.0 ? "Mu03" : "Mu0");
+                         });
+
+// One mesh, two parts with different conditions (a terrain and the barrier on it): the incline
+// of the sweeps at 43 degrees cut across at u = 0.5 m into "upper" (where the block slides, it
+// reaches u = 0.35 m) and "lower". The wall's own condition is one coefficient and the upper
+// part's (the scene's "parts") the other, both ways round: the block must follow the upper
+// part's exact answer (d = a T^2 / 2, a = g (sin - mu cos), the friction force mu N), and the
+// lower part, which the block never reaches, must report no force. With the wall's condition
+// used everywhere instead, d would be off by the ratio of the two accelerations (2.0 here).
+class PartConditions : public ::testing::TestWithParam<std::tuple<const char*, bool>> {};
+
+TEST_P(PartConditions, EachPartTakesItsOwnCondition) {
+  const auto [method, friction_on_part] = GetParam();
+  const double theta = 43.0, mu = 0.3;
+  const double mu_part = friction_on_part ? mu : 0.0, mu_wall = friction_on_part ? 0.0 : mu;
+  const TempDir dir;
+  InclineScene in = incline_3d(theta, mu_wall, dir.path(), method, 0.5);
+  in.doc["walls"][0]["parts"] = {{"upper", contact_json(mu_part)}};
+  in.doc["walls"][0]["parts"]["upper"].erase("separable");
+  const Scene scene = parse_scene(in.doc, "<parts>");
+  const auto& names = scene.dual_walls[0].package->layer.part_names;
+  ASSERT_EQ(names, (std::vector<std::string>{"upper", "lower"}));
+  const InclineResult r = run_incline<3>(in, theta, mu_part);
+  std::printf("%s, mu %.1f on the upper part (%.1f on the wall): d/d_exact %.5f F_n/(mg cos) %.4f "
+              "F_t/(mu mg cos) %.4f |v_n|max/(gT) %.2e\n",
+              method, mu_part, mu_wall, r.displacement, r.normal_force, r.friction_force,
+              r.normal_speed);
+  // The sweeps' tolerances (check_incline_sweep).
+  EXPECT_NEAR(r.displacement, 1.0, 0.03);
+  EXPECT_NEAR(r.normal_force, 1.0, 0.03);
+  if (mu_part > 0.0) {
+    EXPECT_NEAR(r.friction_force, 1.0, 0.03);
+  }
+  EXPECT_LT(r.normal_speed, 0.01);
+  // Separable: a Gamma node of the lower part acts only once a particle lies over its share of
+  // the wall, and none gets within a cell of it.
+  EXPECT_EQ(r.other_parts, 0.0);
+}
+
+INSTANTIATE_TEST_SUITE_P(MethodAndPart, PartConditions,
+                         ::testing::Combine(::testing::Values("mortar", "enhanced"),
+                                            ::testing::Bool()),
+                         [](const auto& p) {
+                           return std::string(std::get<0>(p.param)) +
+                                  (std::get<1>(p.param) ? "FrictionOnPart" : "SlipOnPart");
                          });
 
 // A block at rest on a 20 degree incline with mu = 0.5 > tan 20 sticks: exact answer, no motion,

@@ -248,6 +248,54 @@ TEST_F(CommandLine, RejectsTouchToleranceOnBoxWall) {
   expect_rejected("/walls/1/touch_tolerance", {"dual-grid"});
 }
 
+/// scene_2d with its floor as a dual-grid polyline wall named "floor" (one part, "floor").
+json scene_2d_dual_floor() {
+  json scene = scene_2d();
+  scene["walls"][0] = json::parse(R"({
+    "name": "floor", "method": "mortar", "condition": "friction", "mu": 0.3,
+    "surface": { "type": "polyline", "points": [[0.0, 0.1], [1.0, 0.1]] } })");
+  return scene;
+}
+
+TEST_F(CommandLine, RejectsConditionForUnknownPart) {
+  // A misspelt part would leave the part it meant with the wall's friction.
+  json scene = scene_2d_dual_floor();
+  scene["walls"][0]["parts"] = {{"flor", {{"condition", "sticky"}}}};
+  write_scene(scene);
+  expect_rejected("/walls/0/parts/flor", {"no part named \"flor\"", "floor"});
+}
+
+TEST_F(CommandLine, RejectsNegativeFrictionOnPart) {
+  json scene = scene_2d_dual_floor();
+  scene["walls"][0]["parts"] = {{"floor", {{"condition", "friction"}, {"mu", -0.2}}}};
+  write_scene(scene);
+  expect_rejected("/walls/0/parts/floor/mu", {">= 0"});
+}
+
+TEST_F(CommandLine, RejectsSeparableOnPart) {
+  // Contact (separable, touch tolerance) is the wall's; a part only changes the condition.
+  json scene = scene_2d_dual_floor();
+  scene["walls"][0]["parts"] = {{"floor", {{"condition", "slip"}, {"separable", true}}}};
+  write_scene(scene);
+  expect_rejected("/walls/0/parts/floor/separable", {"unknown key"});
+}
+
+TEST_F(CommandLine, RejectsPartsOnSdfWall) {
+  json scene = scene_2d_dual_floor();
+  scene["walls"][0]["method"] = "sdf";
+  scene["walls"][0]["parts"] = {{"floor", {{"condition", "slip"}}}};
+  write_scene(scene);
+  expect_rejected("/walls/0/parts", {"sdf"});
+}
+
+TEST_F(CommandLine, RunsSceneWithPartCondition) {
+  json scene = scene_2d_dual_floor();
+  scene["walls"][0]["parts"] = {{"floor", {{"condition", "sticky"}}}};
+  write_scene(scene);
+  const RunResult r = run_scene();
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+}
+
 TEST_F(CommandLine, RejectsFixedTimeStepAboveCflLimit) {
   // Wave speed of the rubber in 2D is about 37 m/s, so h/c is about 2.7e-3 s; 0.01 s is ~4x over.
   json scene = scene_2d();
