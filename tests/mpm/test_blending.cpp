@@ -982,10 +982,10 @@ TEST_P(PartConditions, EachPartTakesItsOwnCondition) {
   const auto& names = scene.dual_walls[0].package->layer.part_names;
   ASSERT_EQ(names, (std::vector<std::string>{"upper", "lower"}));
   const InclineResult r = run_incline<3>(in, theta, mu_part);
-  std::printf("%s, mu %.1f on the upper part (%.1f on the wall): d/d_exact %.5f F_n/(mg cos) %.4f "
-              "F_t/(mu mg cos) %.4f |v_n|max/(gT) %.2e\n",
-              method, mu_part, mu_wall, r.displacement, r.normal_force, r.friction_force,
-              r.normal_speed);
+  std::printf(
+      "%s, mu %.1f on the upper part (%.1f on the wall): d/d_exact %.5f F_n/(mg cos) %.4f "
+      "F_t/(mu mg cos) %.4f |v_n|max/(gT) %.2e\n",
+      method, mu_part, mu_wall, r.displacement, r.normal_force, r.friction_force, r.normal_speed);
   // The sweeps' tolerances (check_incline_sweep).
   EXPECT_NEAR(r.displacement, 1.0, 0.03);
   EXPECT_NEAR(r.normal_force, 1.0, 0.03);
