@@ -150,14 +150,21 @@ void write_json_atomically(const std::filesystem::path& file, const nlohmann::js
   std::filesystem::rename(tmp, file);
 }
 
-/// The largest force (by magnitude) on each wall over the history rows, and when.
+/// The largest force (by magnitude) on each wall over the history rows, and when; and the
+/// impulse (the time integral of the force: the momentum the wall took from the material).
+/// The peak of a short average depends on how the particles sample the flow's front (a shift of
+/// a fraction of a cell moves it by tens of percent at a coarse spacing, docs/debris.md); the
+/// impulse of an impact is fixed by the momentum the flow brings, and is what such a shift or a
+/// rotation of the scene must not change.
 struct ForcePeaks {
-  std::vector<Eigen::Vector3d> force;
+  std::vector<Eigen::Vector3d> force, impulse;
   std::vector<double> time;
-  void add(double t, const std::vector<Eigen::Vector3d>& forces) {
+  void add(double t, double elapsed, const std::vector<Eigen::Vector3d>& forces) {
     force.resize(forces.size(), Eigen::Vector3d::Zero());
+    impulse.resize(forces.size(), Eigen::Vector3d::Zero());
     time.resize(forces.size(), 0.0);
     for (std::size_t i = 0; i < forces.size(); ++i) {
+      impulse[i] += elapsed * forces[i];
       if (forces[i].norm() > force[i].norm()) {
         force[i] = forces[i];
         time[i] = t;
@@ -440,6 +447,9 @@ int run_scene(const Scene& scene, const RunOptions& options) {
     for (const auto& f : peaks.force) force.insert(force.end(), f.data(), f.data() + 3);
     c.reals["run.peak_force"] = force;
     c.reals["run.peak_time"] = peaks.time;
+    std::vector<double> impulse;
+    for (const auto& j : peaks.impulse) impulse.insert(impulse.end(), j.data(), j.data() + 3);
+    c.reals["run.wall_impulse"] = impulse;
     c.reals["run.energy"] = guard->state();
     write_checkpoint(out / "checkpoint.h5", c);
   };
@@ -457,8 +467,10 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       step = static_cast<long>(resume.integer("run.step", 1)[0]);
       const std::vector<double>& force = resume.real("run.peak_force");
       peaks.time = resume.real("run.peak_time", force.size() / 3);
+      const std::vector<double>& impulse = resume.real("run.wall_impulse", force.size());
       for (std::size_t i = 0; i < peaks.time.size(); ++i) {
         peaks.force.emplace_back(force[3 * i], force[3 * i + 1], force[3 * i + 2]);
+        peaks.impulse.emplace_back(impulse[3 * i], impulse[3 * i + 1], impulse[3 * i + 2]);
       }
       guard = std::make_unique<EnergyGuard>(scene, first);
       guard->restore(resume.real("run.energy", 2));
@@ -509,7 +521,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       const Clock::time_point output_start = Clock::now();
       if (scene.history_interval == 0.0 || t >= next_history - eps || t >= end - eps) {
         const Energies e = sim->energies();
-        peaks.add(t, history->row(t, step, dt, *sim, since_history, e));
+        peaks.add(t, since_history, history->row(t, step, dt, *sim, since_history, e));
         sim->reset_wall_impulses();
         if (auto runaway = guard->check(e, *sim, scene, t, step)) {
           failure = "step " + std::to_string(step) + ", t = " + num(t) + ": " + *runaway;
@@ -564,9 +576,12 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   const std::vector<std::string> walls = sim->wall_names();
   for (std::size_t i = 0; i < walls.size() && i < peaks.force.size(); ++i) {
     const Eigen::Vector3d& f = peaks.force[i];
+    const Eigen::Vector3d& j = peaks.impulse[i];
     summary["walls"][walls[i]] = {{"peak_force", f.norm()},
                                   {"peak_force_time", peaks.time[i]},
-                                  {"peak_force_vector", {f.x(), f.y(), f.z()}}};
+                                  {"peak_force_vector", {f.x(), f.y(), f.z()}},
+                                  {"impulse", j.norm()},
+                                  {"impulse_vector", {j.x(), j.y(), j.z()}}};
   }
   summary["flow"] = flow_summary(scene, first, sim->frame(t, step));
   try {

@@ -520,6 +520,48 @@ TEST_F(CommandLine, RunsSmallScene) {
   EXPECT_NEAR(last.time, 0.05, 1e-12);
 }
 
+TEST_F(CommandLine, WallImpulsesCloseTheMomentumBalance) {
+  // The block set down on the friction floor: over the run the walls' impulses in summary.json
+  // (the time integral of the history's forces) must be what momentum balance leaves, the
+  // weight's impulse minus the material's momentum at the end (it starts at rest). MPM with
+  // APIC conserves momentum in the transfers, so the balance holds to round-off.
+  json scene = scene_2d();
+  scene["bodies"][0]["shape"]["min"] = {0.3, 0.0};
+  scene["bodies"][0]["shape"]["max"] = {0.7, 0.4};
+  scene["time"]["end"] = 0.1;
+  write_scene(scene);
+  const RunResult r = run_scene({"-j", "1"});
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  const double mass = summary.at("flow").at("mass_final").get<double>();
+  const double T = summary.at("simulated_time").get<double>();
+  std::istringstream rows(read_text(out_dir_ / "history.csv"));
+  std::string header, line, last;
+  std::getline(rows, header);
+  while (std::getline(rows, line)) last = line;
+  std::vector<std::string> names, values;
+  for (auto [text, out] : {std::pair{header, &names}, std::pair{last, &values}}) {
+    std::istringstream cells(text);
+    for (std::string cell; std::getline(cells, cell, ',');) out->push_back(cell);
+  }
+  ASSERT_EQ(names.size(), values.size());
+  const auto column = [&](const std::string& name) {
+    const auto at = std::find(names.begin(), names.end(), name);
+    EXPECT_NE(at, names.end()) << name;
+    return std::stod(values[static_cast<std::size_t>(at - names.begin())]);
+  };
+  const double weight = mass * 9.81 * T;
+  double impulse[2] = {0.0, 0.0};
+  for (const auto& [name, wall] : summary.at("walls").items()) {
+    for (int d = 0; d < 2; ++d) impulse[d] += wall.at("impulse_vector")[d].get<double>();
+  }
+  // Force on the walls: -(what they gave the material) = m g T - p(T), per axis.
+  EXPECT_NEAR(impulse[0], -column("momentum_x"), 1e-9 * weight);
+  EXPECT_NEAR(impulse[1], -weight - column("momentum_y"), 1e-9 * weight);
+  // The floor carried the block for most of the run.
+  EXPECT_LT(summary.at("walls").at("ymin").at("impulse_vector")[1].get<double>(), -0.5 * weight);
+}
+
 TEST_F(CommandLine, RefusesToOverwriteEarlierResult) {
   write_scene(scene_2d());
   ASSERT_EQ(run_scene().exit_code, 0);
