@@ -206,8 +206,8 @@ mpmgeom::ImportOptions read_placement(Reader& r) {
 }
 
 Material read_material(Reader& r, int dim) {
-  const std::string model = r.choice(
-      "model", {"linear_elastic", "neo_hookean", "drucker_prager", "newtonian_fluid", "bingham"});
+  const std::string model = r.choice("model", {"linear_elastic", "neo_hookean", "drucker_prager",
+                                               "mu_i", "newtonian_fluid", "bingham"});
   const bool elastic = model == "linear_elastic" || model == "neo_hookean";
   if (!elastic && dim == 1) {
     r.fail_at(r.child("model"), "\"" + model +
@@ -242,6 +242,18 @@ Material read_material(Reader& r, int dim) {
   }
   if (model == "linear_elastic") return LinearElastic{rho, E, nu};
   if (model == "neo_hookean") return NeoHookean{rho, E, nu};
+  if (model == "mu_i") {
+    // mu(I): the cone through the apex P = 0 with the step's friction mu(I) (DruckerPrager).
+    DruckerPrager dp{rho, E, nu, 0.0, 0.0, 0.0, 0.0};
+    dp.mu_s = r.in_range("mu_s", 0.0, 10.0, false);
+    if (!(dp.mu_s > 0.0)) r.fail_at(r.child("mu_s"), "expected a static friction mu_s > 0");
+    dp.mu_2 = r.in_range("mu_2", dp.mu_s, 10.0, false);
+    dp.inertial_i0 = r.positive("I_0");
+    dp.grain_diameter = r.positive("grain_diameter");
+    dp.grain_density = r.positive("grain_density");
+    dp.alpha = dp.mu_s / 3.0;
+    return dp;
+  }
   // Drucker-Prager matched to Mohr-Coulomb in plane strain.
   const double deg = std::numbers::pi / 180.0;
   const double phi = r.in_range("friction_angle", 0.0, 90.0, true) * deg;
@@ -811,6 +823,9 @@ std::string_view model_name(const Material& m) {
   static constexpr std::string_view names[] = {"linear_elastic", "neo_hookean", "drucker_prager",
                                                "newtonian_fluid", "bingham"};
   static_assert(std::size(names) == std::variant_size_v<Material>);
+  if (const auto* dp = std::get_if<DruckerPrager>(&m); dp != nullptr && dp->grain_diameter > 0.0) {
+    return "mu_i";
+  }
   return names[m.index()];
 }
 

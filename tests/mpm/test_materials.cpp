@@ -107,6 +107,44 @@ TEST(DruckerPrager, ExtensionEndsAtApexOrTensionCutoff) {
 }
 
 // Cohesionless sand cannot carry tension: any extension leaves it stress-free (the apex is 0).
+// mu(I) in steady simple shear (L_xy = gamma_dot, with spin) from an isotropic pressure P0:
+// simple shear keeps the volume and the Jaumann rotation keeps the trace, and without dilatancy
+// the return keeps I1, so P = P0 throughout; once yielding, the return puts the stress on the
+// cone, sqrt(J2) = mu(I) P0 with I = gamma_dot d / sqrt(P0 / rho_s). Exact to round-off at
+// every plastic step, for rates from the quasi-static (I = 5e-3: mu -> mu_s) through I_0 (mu
+// halfway) to the collisional (I = 50: mu -> mu_2). Glass beads of Jop et al. (2006): mu_s =
+// tan 20.9, mu_2 = tan 32.76, I_0 = 0.279, d = 0.5 mm, rho_s = 2500.
+TEST(MuI, SteadySimpleShearFollowsTheInertialFriction) {
+  DruckerPrager m{1500.0, 1.0e7, 0.3, 0.0, 0.0, 0.0, 0.0};
+  m.mu_s = std::tan(20.9 * kDeg);
+  m.mu_2 = std::tan(32.76 * kDeg);
+  m.inertial_i0 = 0.279;
+  m.grain_diameter = 5e-4;
+  m.grain_density = 2500.0;
+  m.alpha = m.mu_s / 3.0;
+  const double p0 = 1e4;  // sqrt(P0 / rho_s) = 2 m/s: I = gamma_dot * 2.5e-4
+  for (const double inertial : {5e-3, 0.279, 50.0}) {
+    const double gamma_dot = inertial * 2.0 / m.grain_diameter;
+    const double dt = 2e-5 / gamma_dot;  // 2e-5 of shear a step: the cone within 90 steps
+    const double mu = m.mu_s + (m.mu_2 - m.mu_s) / (1.0 + m.inertial_i0 / inertial);
+    Mat<2> sigma = -p0 * Mat<2>::Identity(), F = Mat<2>::Identity(), L;
+    L << 0.0, gamma_dot, 0.0, 0.0;
+    PointState state{-p0, 0.0};
+    int plastic = 0;
+    for (int step = 0; step < 600; ++step) {
+      update_stress<2>(m, L, dt, F, sigma, state);
+      const PlaneStress3 got = invariants(sigma, state.stress_zz);
+      EXPECT_NEAR(got.I1, -3.0 * p0, 1e-12 * p0) << "I " << inertial << " step " << step;
+      EXPECT_LE(got.q, mu * p0 * (1.0 + 1e-12)) << "I " << inertial << " step " << step;
+      if (got.q >= mu * p0 * (1.0 - 1e-12)) ++plastic;
+    }
+    EXPECT_GT(plastic, 400) << "I " << inertial;  // the path reaches the cone and flows on it
+    const PlaneStress3 end = invariants(sigma, state.stress_zz);
+    EXPECT_NEAR(end.q / p0, mu, 1e-12) << "I " << inertial;
+    EXPECT_GT(state.plastic_strain, 0.0);
+  }
+}
+
 TEST(DruckerPrager, CohesionlessExtensionIsStressFree) {
   const DruckerPrager m = drucker_prager(35.0, 0.0, 0.0);
   Mat<2> sigma = -1e3 * Mat<2>::Identity(), F = Mat<2>::Identity();

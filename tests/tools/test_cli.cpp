@@ -179,6 +179,37 @@ TEST_F(CommandLine, RejectsNegativeDensity) {
   expect_rejected("/materials/0/density", {"positive", "-1000"});
 }
 
+/// scene_2d with the block made of mu(I) sand (Jop et al.'s glass beads).
+json scene_2d_mu_i() {
+  json scene = scene_2d();
+  scene["materials"][0] = json::parse(R"({
+    "name": "rubber", "model": "mu_i", "density": 1500, "youngs_modulus": 2.0e6,
+    "poisson_ratio": 0.3, "mu_s": 0.38, "mu_2": 0.64, "I_0": 0.279, "grain_diameter": 5e-4,
+    "grain_density": 2500 })");
+  return scene;
+}
+
+TEST_F(CommandLine, RejectsMuIWithDynamicFrictionBelowStatic) {
+  // mu(I) rises from mu_s to mu_2 with the inertial number; the other way round is a typo.
+  json scene = scene_2d_mu_i();
+  scene["materials"][0]["mu_2"] = 0.2;
+  write_scene(scene);
+  expect_rejected("/materials/0/mu_2", {"[0.38, 10]", "0.2"});
+}
+
+TEST_F(CommandLine, RejectsMuIWithoutGrainDiameter) {
+  json scene = scene_2d_mu_i();
+  scene["materials"][0].erase("grain_diameter");
+  write_scene(scene);
+  expect_rejected("/materials/0", {"grain_diameter"});
+}
+
+TEST_F(CommandLine, RunsMuIScene) {
+  write_scene(scene_2d_mu_i());
+  const RunResult r = run_scene();
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+}
+
 TEST_F(CommandLine, RejectsZeroSpacing) {
   json scene = scene_2d();
   scene["grid"]["spacing"] = 0.0;

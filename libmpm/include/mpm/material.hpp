@@ -43,7 +43,24 @@ struct DruckerPrager {
   double alpha_psi = 0.0;       ///< from the dilatancy angle
   double k = 0.0;               ///< from the cohesion (Pa)
   double tension_cutoff = 0.0;  ///< largest mean stress I1/3 (Pa, <= the apex k / (3 alpha))
+  /// mu(I) rheology (Jop, Forterre & Pouliquen 2006; scene model "mu_i") when grain_diameter > 0:
+  /// the cone is sqrt(J2) = mu(I) P (alpha = mu(I) / 3, no cohesion, no dilatancy, tension
+  /// cut-off at the apex P = 0), mu(I) = mu_s + (mu_2 - mu_s) / (1 + I_0 / I), with the
+  /// inertial number I = gamma_dot d / sqrt(P / rho_s) of the step: gamma_dot =
+  /// sqrt(2 dev(D):dev(D)), P = -I1 / 3 of the trial stress (which the return does not change).
+  double mu_s = 0.0;
+  double mu_2 = 0.0;
+  double inertial_i0 = 0.0;     ///< I_0
+  double grain_diameter = 0.0;  ///< d (m); 0: rate-independent Drucker-Prager
+  double grain_density = 0.0;   ///< rho_s (kg/m^3)
 };
+
+/// mu(I) of the rheology above, for a shear rate gamma_dot (1/s) and a pressure P (Pa, > 0).
+inline double inertial_friction(const DruckerPrager& m, double gamma_dot, double pressure) {
+  if (!(pressure > 0.0) || !(gamma_dot > 0.0)) return m.mu_s;
+  const double I = gamma_dot * m.grain_diameter / std::sqrt(pressure / m.grain_density);
+  return m.mu_s + (m.mu_2 - m.mu_s) * I / (I + m.inertial_i0);
+}
 
 /// Weakly compressible Newtonian fluid: Tait pressure p = B ((1/J)^gamma - 1), B = rho c0^2 /
 /// gamma, no tension (a liquid cavitates rather than pull: p >= 0), and viscous stress
@@ -201,25 +218,31 @@ void update_stress(const DruckerPrager& m, const Mat<D>& L, double dt, Mat<D>& F
   const double I1 = s3.trace();
   const Eigen::Matrix3d dev = s3 - I1 / 3.0 * Eigen::Matrix3d::Identity();
   const double q = std::sqrt(0.5 * (dev.array() * dev.array()).sum());  // sqrt(J2)
+  double alpha = m.alpha;
+  if (m.grain_diameter > 0.0 && dt > 0.0) {
+    const Eigen::Matrix3d rate = (d3 - d3.trace() / 3.0 * Eigen::Matrix3d::Identity()) / dt;
+    alpha =
+        inertial_friction(m, std::sqrt(2.0 * (rate.array() * rate.array()).sum()), -I1 / 3.0) / 3.0;
+  }
   double I1_new = I1;
   double q_new = q;
   double dlambda = 0.0;
-  const double f = q + m.alpha * I1 - m.k;
+  const double f = q + alpha * I1 - m.k;
   if (f > 0.0) {
-    dlambda = f / (G + 9.0 * K * m.alpha * m.alpha_psi);
+    dlambda = f / (G + 9.0 * K * alpha * m.alpha_psi);
     q_new = q - G * dlambda;
     I1_new = I1 - 9.0 * K * m.alpha_psi * dlambda;
     if (q_new < 0.0) {
       // Past the apex: the deviator is gone and the mean stress sits at the apex.
       q_new = 0.0;
-      I1_new = m.alpha > 0.0 ? m.k / m.alpha : I1;
+      I1_new = alpha > 0.0 ? m.k / alpha : I1;
       dlambda = q / G;
     }
   }
   // Tension cut-off on the mean stress; the deviator then fits the cone at that pressure.
   if (I1_new > 3.0 * m.tension_cutoff) {
     I1_new = 3.0 * m.tension_cutoff;
-    q_new = std::min(q_new, std::max(0.0, m.k - m.alpha * I1_new));
+    q_new = std::min(q_new, std::max(0.0, m.k - alpha * I1_new));
   }
   state.plastic_strain += dlambda;
   const Eigen::Matrix3d out =
