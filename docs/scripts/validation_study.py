@@ -5,7 +5,7 @@ Runs build/bin/mpm on generated 2D (plane strain) scenes in a temporary folder, 
 markdown tables of docs/validation.md, writes docs/validation.json and docs/img/validation_*.png.
 Needs python3-matplotlib and python3-h5py (Debian). From anywhere, after a release build:
 
-    /usr/bin/python3 docs/scripts/validation_study.py [collapse] [dambreak]
+    /usr/bin/python3 docs/scripts/validation_study.py [collapse] [collapse-study] [dambreak] [impact]
 
 (1) Granular column collapse (Drucker-Prager, phi = 30 deg, on a rough floor with a smooth back
     wall) for aspect ratios a = H0/L0 from 0.5 to 6: normalised run-out (L_inf - L0)/L0 against
@@ -161,6 +161,46 @@ def collapse(work):
     return rows
 
 
+# What moves the collapse: spacing and model, at a = 1 and a = 3 (`collapse-study`, ~6 min).
+DAVIS_PHI = math.degrees(math.asin(math.tan(math.radians(30.0))))  # sin(phi) = tan 30
+
+
+def mu_i_glass_beads(name):
+    """mu(I) with the glass beads of Jop, Forterre & Pouliquen (2006)."""
+    return {"name": name, "model": "mu_i", "density": 1600.0, "youngs_modulus": 2.0e6,
+            "poisson_ratio": 0.3, "mu_s": math.tan(math.radians(20.9)),
+            "mu_2": math.tan(math.radians(32.76)), "I_0": 0.279, "grain_diameter": 5e-4,
+            "grain_density": 2500.0}
+
+
+def collapse_study(work):
+    models = [("Drucker-Prager, phi 30", granular("sand", 1600.0, 2.0e6)),
+              (f"Drucker-Prager, phi {DAVIS_PHI:.1f} (sin phi = tan 30)",
+               dict(granular("sand", 1600.0, 2.0e6), friction_angle=DAVIS_PHI)),
+              ("mu(I), glass beads of Jop et al.", mu_i_glass_beads("sand"))]
+    rows = []
+    for a, cells in [(1.0, 8), (1.0, 16), (1.0, 32), (3.0, 8), (3.0, 16)]:
+        h = L0 / cells
+        for label, material in models:
+            scene = collapse_scene(a, h)
+            scene["materials"] = [material]
+            out, summary = run(scene, f"study_{a}_{cells}_{len(rows)}", work)
+            t, x, vol = list(frames(out))[-1]
+            run_out = (front(x[:, 0], h) - L0) / L0
+            rows.append({"a": a, "cells": cells, "model": label, "runout": run_out,
+                         "centroid": summary["flow"]["centroid_travel"] / L0,
+                         "height": float(x[:, 1].max()) / (a * L0), "lube": lube(a),
+                         "status": summary["status"]})
+            print(f"a = {a}, L0/h = {cells}, {label}: {run_out:.3f}", file=sys.stderr)
+    print("| a | L0 / h | model | (L_inf - L0)/L0 | Lube et al. | centroid travel / L0 | "
+          "final height / H0 |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['a']:g} | {r['cells']} | {r['model']} | {r['runout']:.3f} | "
+              f"{r['lube']:.2f} | {r['centroid']:.3f} | {r['height']:.3f} |")
+    return rows
+
+
 # --- (2) dam break ------------------------------------------------------------------------------
 
 def dambreak(work):
@@ -269,6 +309,8 @@ def main():
     with tempfile.TemporaryDirectory() as work:
         if "collapse" in which:
             results["collapse"] = collapse(work)
+        if "collapse-study" in which:
+            results["collapse_study"] = collapse_study(work)
         if "dambreak" in which:
             results["dambreak"] = dambreak(work)
         if "impact" in which:

@@ -22,7 +22,8 @@ namespace fs = std::filesystem;
 const fs::path kScene = fs::path(MPM_DATA_DIR) / "scenes" / "debris_wall.json";
 
 struct Outcome {
-  double peak_force = 0.0, peak_time = 0.0, runout = 0.0, mass_change = 1.0, retained = 0.0;
+  double peak_force = 0.0, peak_time = 0.0, impulse = 0.0, runout = 0.0, mass_change = 1.0,
+         retained = 0.0;
 };
 
 Outcome run(json doc, const std::string& label) {
@@ -38,12 +39,15 @@ Outcome run(json doc, const std::string& label) {
   Outcome o;
   o.peak_force = summary["walls"]["slope_barrier"]["peak_force"].get<double>();
   o.peak_time = summary["walls"]["slope_barrier"]["peak_force_time"].get<double>();
+  o.impulse = summary["walls"]["slope_barrier"]["impulse"].get<double>();
   o.runout = summary["flow"]["runout_distance"].get<double>();
   o.mass_change = summary["flow"]["mass_relative_change"].get<double>();
   o.retained =
       summary["flow"]["retaining_walls"]["slope_barrier"]["volume_on_source_side"].get<double>();
-  std::printf("%s: peak barrier force %.4g N at %.3f s, run-out %.4g m, retained %.4g m^3\n",
-              label.c_str(), o.peak_force, o.peak_time, o.runout, o.retained);
+  std::printf(
+      "%s: peak barrier force %.4g N at %.3f s, barrier impulse %.4g N s, run-out %.4g m, "
+      "retained %.4g m^3\n",
+      label.c_str(), o.peak_force, o.peak_time, o.impulse, o.runout, o.retained);
   fs::remove_all(out);
   return o;
 }
@@ -60,7 +64,7 @@ json coarse() {
   return doc;
 }
 
-TEST(DebrisWall, RotatedSceneGivesSameRunout) {
+TEST(DebrisWall, RotatedSceneGivesSameRunoutAndImpulse) {
   const json base = coarse();
   const Outcome a = run(base, "aligned");
 
@@ -107,14 +111,22 @@ TEST(DebrisWall, RotatedSceneGivesSameRunout) {
   EXPECT_GT(a.peak_force, 0.0);
   // The same run-out within 5%.
   EXPECT_NEAR(b.runout / a.runout, 1.0, 0.05);
+  // The same impulse on the barrier within 5%: the momentum the flow brings it, which the flow
+  // down the same slope fixes (measured 2.1% apart at this spacing; a shift of the source by a
+  // fraction of a cell alone moves it by 1%).
+  EXPECT_NEAR(b.impulse / a.impulse, 1.0, 0.05);
   // The peak barrier force is measured, not asserted: at this spacing (1 m: the flow is one or
-  // two cells deep at the barrier and arrives as a slug) the 0.01 s peak is a spike, and the
-  // turned scene's was 15% lower, 41% since the layer's C_p keeps rotation (issue 8 keeps the 5%
-  // target open; docs/debris.md). Recorded for the test report.
+  // two cells deep at the barrier) it depends on how the particle lattice samples the flow's
+  // front, and a shift of the source by a fraction of a cell, with no rotation, moves it by 23%.
+  // The turned/shipped ratio closes with the spacing, 0.58, 0.71, 0.84 at h = 1, 0.75, 0.5 m
+  // (docs/debris.md); 5% needs about h = 0.2 m, a run of hours (issue 8 keeps it open).
   RecordProperty("peak_force_ratio", std::to_string(b.peak_force / a.peak_force));
+  RecordProperty("impulse_ratio", std::to_string(b.impulse / a.impulse));
   RecordProperty("runout_ratio", std::to_string(b.runout / a.runout));
-  std::printf("rotated / aligned: peak force %.3f, run-out %.4f, retained volume %.3f\n",
-              b.peak_force / a.peak_force, b.runout / a.runout, b.retained / a.retained);
+  std::printf(
+      "rotated / aligned: peak force %.3f, impulse %.4f, run-out %.4f, retained volume %.3f\n",
+      b.peak_force / a.peak_force, b.impulse / a.impulse, b.runout / a.runout,
+      b.retained / a.retained);
 }
 
 }  // namespace
