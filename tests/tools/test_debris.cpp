@@ -2,6 +2,7 @@
 // arbitrary rotation (terrain, barrier, source and gravity together): the run-out must not
 // depend on how the scene sits against the grid.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <Eigen/Geometry>
 #include <cmath>
@@ -27,7 +28,9 @@ struct Outcome {
 };
 
 Outcome run(json doc, const std::string& label) {
-  const fs::path out = fs::temp_directory_path() / ("mpm_test_debris_" + label);
+  // The pid in the name: two build trees (release and sanitizer) may run this test at once.
+  const fs::path out =
+      fs::temp_directory_path() / ("mpm_test_debris_" + label + "_" + std::to_string(::getpid()));
   const mpm::Scene scene = mpm::parse_scene(doc, kScene);
   mpm::RunOptions options;
   options.out_dir = out;
