@@ -478,7 +478,7 @@ void Solver<D>::layer_couple(bool remapped) {
       };
       Block lambda = factor_solve(gap);
       if (w.schur_refine) {
-        // x += F^-1 (gap - S x) while Refinement allows (to an update below 1e-13 of x);
+        // x += F^-1 (gap - S x) while refine() allows (to an update below 1e-13 of x);
         // unconverged (the masses moved too far from the factorised step's), factorise this
         // step's S.
         auto apply = [&](const Block& x) {

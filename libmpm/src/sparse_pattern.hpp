@@ -24,49 +24,31 @@ inline std::size_t pattern_hash(const Eigen::SparseMatrix<double>& m) {
   return hash;
 }
 
-/// Decides how long refinement against an earlier factorisation goes on. Each pass shrinks the
-/// update by about the relative change of the matrix since the factorised step (the rate); in a
-/// flow whose masses change fast that is slow, and a factorisation costs about as much as 10-20
-/// passes, so refinement stops as soon as the rate says it would need more than kMaxPasses in
-/// all (with a fixed 20 passes, the debris scene spent 70% of its run refining and then
-/// factorising anyway). The caller factorises when it ends unconverged.
-class Refinement {
- public:
-  static constexpr int kMaxPasses = 6;
-  static constexpr double kTolerance = 1e-13;  ///< update against solution: round-off
-
-  explicit Refinement(double first_size) : previous_(first_size) {}
-
-  /// After pass `pass` (1, 2, ...) with update norm `update` and solution norm `size`: true
-  /// while another pass is worth it; converged() says whether it stopped because it is done.
-  bool next(int pass, double update, double size) {
-    converged_ = update <= kTolerance * size;
-    if (converged_ || pass >= kMaxPasses) return false;
-    const double rate = update / previous_;
-    previous_ = update;
-    if (!(rate < 0.5)) return false;  // stalled (or not a number)
-    return pass + std::log(kTolerance * size / update) / std::log(rate) <= kMaxPasses;
-  }
-  [[nodiscard]] bool converged() const { return converged_; }
-
- private:
-  double previous_;
-  bool converged_ = false;
-};
-
-/// Refinement passes x += solve(b - apply(x)) from the x in hand, as long as Refinement allows;
-/// `apply` multiplies by this step's matrix and `solve` applies the factorisation in hand (an
-/// earlier step's). True if converged; the caller factorises otherwise.
+/// Refinement passes x += solve(b - apply(x)) from the x in hand: `apply` multiplies by this
+/// step's matrix and `solve` applies the factorisation in hand (an earlier step's). Each pass
+/// shrinks the update by about the relative change of the matrix since the factorised step (the
+/// rate); in a flow whose masses change fast that is slow, and a factorisation costs about as
+/// much as 10-20 passes, so refinement stops as soon as the rate says it would need more than
+/// kMaxPasses in all (with a fixed 20 passes, the debris scene spent 70% of its run refining and
+/// then factorising anyway). True if converged (an update below kTolerance of x: round-off); the
+/// caller factorises otherwise.
 template <class Rhs, class Apply, class Solve>
 bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& passes) {
-  Refinement refinement(x.norm());
+  constexpr int kMaxPasses = 6;
+  constexpr double kTolerance = 1e-13;
+  double previous = x.norm();
   for (int pass = 1;; ++pass) {
     const Rhs dx = solve(Rhs(b - apply(x)));
     x += dx;
     ++passes;
-    if (!refinement.next(pass, dx.norm(), x.norm())) break;
+    const double update = dx.norm(), size = x.norm();
+    if (update <= kTolerance * size) return true;
+    if (pass >= kMaxPasses) return false;
+    const double rate = update / previous;
+    previous = update;
+    if (!(rate < 0.5)) return false;  // stalled (or not a number)
+    if (pass + std::log(kTolerance * size / update) / std::log(rate) > kMaxPasses) return false;
   }
-  return refinement.converged();
 }
 
 /// Solves m x = b with `solver`, which holds a factorisation of m itself or, when `refine`, of
