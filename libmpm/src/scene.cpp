@@ -399,8 +399,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
   return body;
 }
 
-/// touch: whether the wall decides contact by touch (dual-grid Blending and Enhanced walls);
-/// box and sdf walls act on every node near them, as standard MPM does.
+/// "condition" (and "mu" for friction): of a wall, or of a part of a dual-grid wall.
 WallCondition read_condition(Reader& r) {
   const std::string condition = r.choice("condition", {"sticky", "slip", "friction"});
   if (condition == "friction") {
@@ -413,6 +412,8 @@ WallCondition read_condition(Reader& r) {
   return Slip{};
 }
 
+/// touch: whether the wall decides contact by touch (dual-grid Blending and Enhanced walls);
+/// box and sdf walls act on every node near them, as standard MPM does.
 WallContact read_contact(Reader& r, bool touch) {
   WallContact contact;
   contact.condition = read_condition(r);

@@ -78,14 +78,13 @@ enum class CouplingMethod {
 struct DualWallSpec {
   std::string name;
   WallContact contact;
-  /// The condition on each part of the layer (package->layer.part_names order): the wall's own
-  /// (contact.condition) unless the scene's "parts" gives that part another (a terrain and the
-  /// barrier standing on it are one mesh, with different friction).
+  /// The condition on each part of the layer (package->layer.part_names order, one entry when
+  /// it names none): the wall's own (contact.condition) unless the scene's "parts" gives that
+  /// part another (a terrain and the barrier standing on it are one mesh, with different
+  /// friction). The scene reader fills it.
   std::vector<WallCondition> part_condition;
   [[nodiscard]] const WallCondition& condition(int part) const {
-    return part >= 0 && static_cast<std::size_t>(part) < part_condition.size()
-               ? part_condition[static_cast<std::size_t>(part)]
-               : contact.condition;
+    return part_condition[static_cast<std::size_t>(part)];
   }
   CouplingMethod method = CouplingMethod::mortar;
   /// Layer, coupling matrices and cell flags, built while the scene is read (from a point in
