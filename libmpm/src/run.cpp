@@ -159,12 +159,15 @@ void write_json_atomically(const std::filesystem::path& file, const nlohmann::js
 struct ForcePeaks {
   std::vector<Eigen::Vector3d> force, impulse;
   std::vector<double> time;
-  void add(double t, double elapsed, const std::vector<Eigen::Vector3d>& forces) {
+  /// `forces`: the history row's; `given`: the impulses the walls gave the material since the
+  /// last row (the wall takes the opposite).
+  void add(double t, const std::vector<Eigen::Vector3d>& forces,
+           const std::vector<Eigen::Vector3d>& given) {
     force.resize(forces.size(), Eigen::Vector3d::Zero());
     impulse.resize(forces.size(), Eigen::Vector3d::Zero());
     time.resize(forces.size(), 0.0);
     for (std::size_t i = 0; i < forces.size(); ++i) {
-      impulse[i] += elapsed * forces[i];
+      impulse[i] -= given[i];
       if (forces[i].norm() > force[i].norm()) {
         force[i] = forces[i];
         time[i] = t;
@@ -172,6 +175,20 @@ struct ForcePeaks {
     }
   }
 };
+
+/// 3-vectors as one list of numbers (a checkpoint's), and back.
+std::vector<double> flatten(const std::vector<Eigen::Vector3d>& vectors) {
+  std::vector<double> out;
+  for (const auto& v : vectors) out.insert(out.end(), v.data(), v.data() + 3);
+  return out;
+}
+std::vector<Eigen::Vector3d> unflatten(const std::vector<double>& numbers) {
+  std::vector<Eigen::Vector3d> out;
+  for (std::size_t i = 0; i + 2 < numbers.size(); i += 3) {
+    out.emplace_back(numbers[i], numbers[i + 1], numbers[i + 2]);
+  }
+  return out;
+}
 
 Eigen::Vector3d frame_point(const ParticleFrame& f, std::size_t p) {
   return {f.position[3 * p], f.position[3 * p + 1], f.position[3 * p + 2]};
@@ -443,13 +460,9 @@ int run_scene(const Scene& scene, const RunOptions& options) {
     c.integers["run.step"] = {step};
     c.integers["run.frames"] = {static_cast<std::int64_t>(writer->frames_written())};
     c.integers["run.history_bytes"] = {static_cast<std::int64_t>(history->bytes())};
-    std::vector<double> force;
-    for (const auto& f : peaks.force) force.insert(force.end(), f.data(), f.data() + 3);
-    c.reals["run.peak_force"] = force;
+    c.reals["run.peak_force"] = flatten(peaks.force);
     c.reals["run.peak_time"] = peaks.time;
-    std::vector<double> impulse;
-    for (const auto& j : peaks.impulse) impulse.insert(impulse.end(), j.data(), j.data() + 3);
-    c.reals["run.wall_impulse"] = impulse;
+    c.reals["run.wall_impulse"] = flatten(peaks.impulse);
     c.reals["run.energy"] = guard->state();
     write_checkpoint(out / "checkpoint.h5", c);
   };
@@ -466,12 +479,9 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       wall_before = clock[6];
       step = static_cast<long>(resume.integer("run.step", 1)[0]);
       const std::vector<double>& force = resume.real("run.peak_force");
+      peaks.force = unflatten(force);
       peaks.time = resume.real("run.peak_time", force.size() / 3);
-      const std::vector<double>& impulse = resume.real("run.wall_impulse", force.size());
-      for (std::size_t i = 0; i < peaks.time.size(); ++i) {
-        peaks.force.emplace_back(force[3 * i], force[3 * i + 1], force[3 * i + 2]);
-        peaks.impulse.emplace_back(impulse[3 * i], impulse[3 * i + 1], impulse[3 * i + 2]);
-      }
+      peaks.impulse = unflatten(resume.real("run.wall_impulse", force.size()));
       guard = std::make_unique<EnergyGuard>(scene, first);
       guard->restore(resume.real("run.energy", 2));
     } else {
@@ -521,7 +531,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       const Clock::time_point output_start = Clock::now();
       if (scene.history_interval == 0.0 || t >= next_history - eps || t >= end - eps) {
         const Energies e = sim->energies();
-        peaks.add(t, since_history, history->row(t, step, dt, *sim, since_history, e));
+        peaks.add(t, history->row(t, step, dt, *sim, since_history, e), sim->wall_impulses());
         sim->reset_wall_impulses();
         if (auto runaway = guard->check(e, *sim, scene, t, step)) {
           failure = "step " + std::to_string(step) + ", t = " + num(t) + ": " + *runaway;
