@@ -622,27 +622,30 @@ void write_u64(int fd, std::uint64_t v) { write_all(fd, &v, sizeof v); }
   ::_exit(0);  // no atexit handlers, no flushing of the parent's buffers, no leak check
 }
 
-std::uint64_t resident_bytes(pid_t pid) {
-  std::ifstream statm("/proc/" + std::to_string(pid) + "/statm");
-  std::uint64_t size = 0, resident = 0;
-  statm >> size >> resident;
-  return resident * static_cast<std::uint64_t>(::sysconf(_SC_PAGESIZE));
-}
+// A process's resident memory and its user + system CPU time so far, from one read of
+// /proc/PID/stat (proc(5): fields 14, 15 and 24, counted after the command name, which is in
+// parentheses and may hold spaces); zeros if unknown.
+struct Usage {
+  std::uint64_t resident_bytes = 0;
+  double cpu_seconds = 0.0;
+};
 
-// User + system CPU seconds of a process so far (proc(5): fields 14 and 15 of /proc/PID/stat,
-// counted after the command name, which is in parentheses and may hold spaces); 0 if unknown.
-double cpu_seconds(pid_t pid) {
+Usage usage_of(pid_t pid) {
   std::ifstream stat("/proc/" + std::to_string(pid) + "/stat");
   std::string line;
   std::getline(stat, line);
   const std::size_t close = line.rfind(')');
-  if (close == std::string::npos) return 0.0;
+  if (close == std::string::npos) return {};
   std::istringstream fields(line.substr(close + 1));
   std::string skip;
   for (int field = 3; field <= 13; ++field) fields >> skip;  // state ... cmajflt
   double user = 0.0, system = 0.0;
   fields >> user >> system;
-  return (user + system) / static_cast<double>(::sysconf(_SC_CLK_TCK));
+  for (int field = 16; field <= 23; ++field) fields >> skip;  // cutime ... vsize
+  std::uint64_t pages = 0;
+  fields >> pages;
+  return {pages * static_cast<std::uint64_t>(::sysconf(_SC_PAGESIZE)),
+          (user + system) / static_cast<double>(::sysconf(_SC_CLK_TCK))};
 }
 
 // Parent: reads what the child sends, watching its memory and run time.
@@ -729,26 +732,27 @@ class ChildReader {
 
  private:
   void watch() {
-    if (resident_bytes(pid_) > limits_.memory_bytes) {
-      ::kill(pid_, SIGKILL);
-      reap();
-      fail(file_, "reading it took more than " + std::to_string(limits_.memory_bytes >> 20) +
-                      " MiB of memory (a malformed file announcing huge counts?); stopped");
+    const Usage usage = usage_of(pid_);
+    if (usage.resident_bytes > limits_.memory_bytes) {
+      stop("reading it took more than " + std::to_string(limits_.memory_bytes >> 20) +
+           " MiB of memory (a malformed file announcing huge counts?); stopped");
     }
-    if (cpu_seconds(pid_) > limits_.seconds) {
-      ::kill(pid_, SIGKILL);
-      reap();
-      fail(file_, "reading it took more than " + format_number(limits_.seconds) +
-                      " s of CPU time (a malformed file that makes the reader loop?); stopped");
+    if (usage.cpu_seconds > limits_.seconds) {
+      stop("reading it took more than " + format_number(limits_.seconds) +
+           " s of CPU time (a malformed file that makes the reader loop?); stopped");
     }
     const double elapsed =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
     if (elapsed > limits_.wall_seconds) {
-      ::kill(pid_, SIGKILL);
-      reap();
-      fail(file_, "reading it took more than " + format_number(limits_.wall_seconds) +
-                      " s (a reader waiting for input that never comes?); stopped");
+      stop("reading it took more than " + format_number(limits_.wall_seconds) +
+           " s (a reader waiting for input that never comes?); stopped");
     }
+  }
+
+  [[noreturn]] void stop(const std::string& why) {
+    ::kill(pid_, SIGKILL);
+    reap();
+    fail(file_, why);
   }
 
   int reap() {
