@@ -145,15 +145,29 @@ void Solver<D>::setup_dual_walls() {
 }
 
 // Ownership: a particle in a flagged standard-grid cell is looked up in the layer; found means
-// the boundary grid owns it this step. Unflagged cells never query Embree.
+// the boundary grid owns it this step. Unflagged cells never query Embree. The particles found
+// are listed in index order with their cell and natural coordinates (per particle only the wall
+// and the place in that list: most particles are in no layer).
 template <int D>
 void Solver<D>::locate_in_layers() {
   auto& P = particles;
   for (auto& w : dual_) w.layer_particles = 0;
-  if (dual_.empty()) return;
-  Index<D> cells = grid.nodes - Index<D>::Ones();
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
-    for (std::size_t p = r.begin(); p != r.end(); ++p) {
+  layer_list_.clear();
+  layer_cell_.clear();
+  layer_xi_.clear();
+  if (dual_.empty()) {
+    layer_stencil_.clear();
+    layer_gradient_.clear();
+    return;
+  }
+  const Index<D> cells = grid.nodes - Index<D>::Ones();
+  constexpr std::size_t kChunk = 1024;
+  layer_hits_.resize((P.size() + kChunk - 1) / kChunk);
+  tbb::parallel_for(std::size_t{0}, layer_hits_.size(), [&](std::size_t chunk) {
+    std::vector<LayerHit>& hits = layer_hits_[chunk];
+    hits.clear();
+    const std::size_t end = std::min(P.size(), (chunk + 1) * kChunk);
+    for (std::size_t p = chunk * kChunk; p != end; ++p) {
       P.layer_wall[p] = -1;
       long cell = 0;
       for (int d = 0; d < D; ++d) {
@@ -170,25 +184,28 @@ void Solver<D>::locate_in_layers() {
         const auto found = dual_[wi].locator->locate(x);
         if (found.cell >= 0) {
           P.layer_wall[p] = static_cast<int>(wi);
-          P.layer_cell[p] = found.cell;
-          P.layer_xi[p] = found.xi;
+          hits.push_back({static_cast<int>(p), static_cast<int>(wi), found.cell, found.xi});
           break;
         }
       }
     }
   });
-  layer_list_.clear();
-  for (std::size_t p = 0; p < P.size(); ++p) {
-    if (P.layer_wall[p] < 0) continue;
-    ++dual_[P.layer_wall[p]].layer_particles;
-    layer_list_.push_back(static_cast<int>(p));
+  for (const auto& hits : layer_hits_) {
+    for (const LayerHit& hit : hits) {
+      P.layer_slot[hit.particle] = static_cast<int>(layer_list_.size());
+      ++dual_[hit.wall].layer_particles;
+      layer_list_.push_back(hit.particle);
+      layer_cell_.push_back(hit.cell);
+      layer_xi_.push_back(hit.xi);
+    }
   }
   layer_stencil_.resize(layer_list_.size());
+  layer_gradient_.resize(layer_list_.size());
   tbb::parallel_for(
       tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
           const int p = layer_list_[i];
-          layer_stencil_[i] = alpha_stencil(dual_[P.layer_wall[p]], P.layer_cell[p], P.layer_xi[p]);
+          layer_stencil_[i] = alpha_stencil(dual_[P.layer_wall[p]], layer_cell_[i], layer_xi_[i]);
         }
       });
 }
@@ -238,7 +255,7 @@ void Solver<D>::layer_scatter(bool with_force) {
     if (touch) {
       const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
       reach = (1.0 + w.spec->contact.touch_tolerance) * half;
-      window = w.touch_window[static_cast<std::size_t>(P.layer_cell[p])] + half;
+      window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
     }
     // The remap's nodal velocity is that of the particles at their centroid, which
     // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced keeps the
@@ -649,8 +666,8 @@ void Solver<D>::layer_gather(double dt) {
       } else {
         P.velocity[p] += alpha * increment + (1.0 - alpha) * value;
       }
-      P.displacement[p] += dt * value;
-      if (usl) P.velocity_gradient[p] += L;
+      if (!P.displacement.empty()) P.displacement[p] += dt * value;
+      if (usl) layer_gradient_[i] += L;  // the standard grid's is there (gather())
       return;
     }
     if (apic) {
@@ -659,8 +676,8 @@ void Solver<D>::layer_gather(double dt) {
     } else {
       P.velocity[p] = alpha * (P.velocity[p] + increment) + (1.0 - alpha) * value;
     }
-    P.displacement[p] = dt * value;
-    if (usl) P.velocity_gradient[p] = L;
+    if (!P.displacement.empty()) P.displacement[p] = dt * value;
+    if (usl) layer_gradient_[i] = L;
   };
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256),
                     [&](const auto& r) {
@@ -692,10 +709,10 @@ void Solver<D>::layer_gather_gradient() {
     const AlphaStencil<D>& st = layer_stencil_[i];
     const Mat<D> L = stencil_gradient(w.velocity, st);
     if (w.enhanced) {
-      P.velocity_gradient[p] += L;  // on top of the standard grid's
+      layer_gradient_[i] += L;  // on top of the standard grid's (gather_velocity_gradient())
       return;
     }
-    P.velocity_gradient[p] = L;
+    layer_gradient_[i] = L;
     if (apic) P.affine[p] = layer_affine(w, st, L, P.velocity[p], mass_threshold_);
   };
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256),

@@ -3,11 +3,14 @@
 #include "mpm/solver.hpp"
 
 #include <algorithm>
+#include <array>
+#include <chrono>
 #include <cmath>
 #include <numeric>
 #include <sstream>
 
 #include <tbb/blocked_range.h>
+#include <tbb/combinable.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
 
@@ -197,6 +200,9 @@ void Solver<D>::fill_bodies() {
     particles.material[p] = body.material;
     particles.body[p] = seeds[p].body;
   }
+  // Only FLIP keeps a velocity other than the gathered one, whose step is the displacement.
+  const bool flip = scene_.transfer == Transfer::flip && scene_.flip_blend > 0.0;
+  particles.displacement.assign(flip ? seeds.size() : 0, Vec<D>::Zero());
   groups_.clear();
   for (std::size_t m = 0; m < scene_.materials.size(); ++m) {
     const auto lo =
@@ -460,42 +466,58 @@ GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
   return s;
 }
 
-// Gather the new velocity and the displacement at x_p^n. APIC keeps C_p = B_p D_p^{-1} with
-// D_p = h^2/4 I for the quadratic B-spline (Jiang et al. 2015 eq. 10); for the linear kernel
-// B_p D_p^{-1} = sum_I v_I grad N_I^T (ibid., section 5.3), which is also used for GIMP: both are
-// exact for affine fields. USL also takes the velocity gradient here.
+// Gather the new velocity (and for FLIP the displacement) at x_p^n. APIC keeps C_p = B_p D_p^{-1}
+// with D_p = h^2/4 I for the quadratic B-spline (Jiang et al. 2015 eq. 10); for the linear
+// kernel B_p D_p^{-1} = sum_I v_I grad N_I^T (ibid., section 5.3), which is also used for GIMP:
+// both are exact for affine fields. USL also takes the velocity gradient here, and updates the
+// stress of the particles the standard grid alone moves with it.
 template <int D>
 template <class Shape>
 void Solver<D>::gather(double dt) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
   const bool usl = scene_.update == UpdateScheme::usl;
+  const bool displace = !P.displacement.empty();
   constexpr bool bspline = std::is_same_v<Shape, BSpline2Shape>;
   const double alpha = scene_.flip_blend;
   const double inv_d = 4.0 * grid.inv_h * grid.inv_h;
   auto pass = [&](auto parts) {
     constexpr unsigned Parts = decltype(parts)::value;
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
-      for (std::size_t p = r.begin(); p != r.end(); ++p) {
-        if (owned_by_layer(p)) continue;  // layer_gather
-        const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
-        const GridSample<D> s =
-            sample_grid<Parts>(grid, st, grid.velocity_new, grid.velocity, mass_threshold_);
-        if constexpr ((Parts & kIncrement) != 0) {
-          P.velocity[p] = alpha * (P.velocity[p] + s.increment) + (1.0 - alpha) * s.value;
+    // Gathers particle p; with the gradient (USL), true if its stress is to be updated now.
+    auto sample = [&](std::size_t p, Mat<D>& L) {
+      if (owned_by_layer(p)) return false;  // layer_gather
+      const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+      const GridSample<D> s =
+          sample_grid<Parts>(grid, st, grid.velocity_new, grid.velocity, mass_threshold_);
+      if constexpr ((Parts & kIncrement) != 0) {
+        P.velocity[p] = alpha * (P.velocity[p] + s.increment) + (1.0 - alpha) * s.value;
+      } else {
+        P.velocity[p] = s.value;
+        if constexpr (bspline) {
+          P.affine[p] = s.moment * inv_d;
         } else {
-          P.velocity[p] = s.value;
-          if constexpr (bspline) {
-            P.affine[p] = s.moment * inv_d;
-          } else {
-            P.affine[p] = s.gradient;
-          }
-        }
-        P.displacement[p] = dt * s.value;
-        if constexpr ((Parts & kGradient) != 0) {
-          if (usl) P.velocity_gradient[p] = s.gradient;
+          P.affine[p] = s.gradient;
         }
       }
+      if (displace) P.displacement[p] = dt * s.value;
+      if constexpr ((Parts & kGradient) != 0) {
+        if (!usl) return false;      // the gradient was the affine matrix (linear kernel, GIMP)
+        if (P.layer_wall[p] >= 0) {  // Enhanced: layer_gather adds the layer's, then the stress
+          layer_gradient_[static_cast<std::size_t>(P.layer_slot[p])] = s.gradient;
+          return false;
+        }
+        L = s.gradient;
+        return true;
+      }
+      return false;
+    };
+    if (usl) {
+      sample_and_update_stress(dt, sample);
+      return;
+    }
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
+      Mat<D> unused;
+      for (std::size_t p = r.begin(); p != r.end(); ++p) sample(p, unused);
     });
   };
   using std::integral_constant;
@@ -513,27 +535,85 @@ void Solver<D>::gather(double dt) {
   }
 }
 
+// MUSL: the velocity gradient from the remapped field, and the stress update of the particles
+// the standard grid alone moves.
 template <int D>
 template <class Shape>
-void Solver<D>::gather_velocity_gradient() {
+void Solver<D>::gather_velocity_gradient(double dt) {
   auto& P = particles;
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, P.size(), 1024), [&](const auto& r) {
-    for (std::size_t p = r.begin(); p != r.end(); ++p) {
-      if (owned_by_layer(p)) continue;  // layer_gather_gradient
-      const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
-      P.velocity_gradient[p] =
-          sample_grid<kGradient>(grid, st, grid.velocity, grid.velocity, mass_threshold_).gradient;
+  sample_and_update_stress(dt, [&](std::size_t p, Mat<D>& L) {
+    if (owned_by_layer(p)) return false;  // layer_gather_gradient
+    const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+    const Mat<D> gradient =
+        sample_grid<kGradient>(grid, st, grid.velocity, grid.velocity, mass_threshold_).gradient;
+    if (P.layer_wall[p] >= 0) {  // Enhanced: layer_gather_gradient adds the layer's
+      layer_gradient_[static_cast<std::size_t>(P.layer_slot[p])] = gradient;
+      return false;
     }
+    L = gradient;
+    return true;
   });
+}
+
+// Runs sample(p, L) over the particles, material group by group, in chunks: it gathers particle
+// p and, when it returns true, leaves in L the velocity gradient its constitutive update takes
+// at once (a chunk's gradients wait in a buffer on the stack, so no per-particle array holds
+// them: 72 bytes a particle in 3D). The pass's time is split between the phases
+// grid_to_particles and stress in proportion to the time each part took.
+template <int D>
+template <class Sample>
+void Solver<D>::sample_and_update_stress(double dt, Sample&& sample) {
+  auto& P = particles;
+  using Clock = std::chrono::steady_clock;
+  constexpr std::size_t kChunk = 128;
+  lap(&PhaseTimes::grid_to_particles);
+  tbb::combinable<std::array<double, 2>> seconds([] { return std::array<double, 2>{}; });
+  for (const auto& [begin, end] : groups_) {
+    std::visit(
+        [&, b = begin, e = end](const auto& material) {
+          tbb::parallel_for(tbb::blocked_range<std::size_t>(b, e, kChunk), [&](const auto& r) {
+            std::array<Mat<D>, kChunk> L;
+            std::array<bool, kChunk> now{};
+            std::array<double, 2>& local = seconds.local();
+            for (std::size_t first = r.begin(); first < r.end(); first += kChunk) {
+              const std::size_t n = std::min(kChunk, r.end() - first);
+              const auto t0 = Clock::now();
+              for (std::size_t k = 0; k < n; ++k) now[k] = sample(first + k, L[k]);
+              const auto t1 = Clock::now();
+              for (std::size_t k = 0; k < n; ++k) {
+                if (!now[k]) continue;
+                const std::size_t p = first + k;
+                mpm::update_stress<D>(material, L[k], dt, P.deformation_gradient[p], P.stress[p],
+                                      P.state[p]);
+              }
+              const auto t2 = Clock::now();
+              local[0] += std::chrono::duration<double>(t1 - t0).count();
+              local[1] += std::chrono::duration<double>(t2 - t1).count();
+            }
+          });
+        },
+        scene_.materials[static_cast<std::size_t>(P.material[begin])].model);
+  }
+  const std::array<double, 2> total =
+      seconds.combine([](std::array<double, 2> a, const std::array<double, 2>& b) {
+        return std::array<double, 2>{a[0] + b[0], a[1] + b[1]};
+      });
+  const Clock::time_point now = Clock::now();
+  const double wall = std::chrono::duration<double>(now - lap_start_).count();
+  const double share = total[0] + total[1] > 0.0 ? total[1] / (total[0] + total[1]) : 0.0;
+  times_.stress += share * wall;
+  times_.grid_to_particles += (1.0 - share) * wall;
+  lap_start_ = now;
 }
 
 template <int D>
 void Solver<D>::grid_to_particles(double dt) {
+  const bool usl = scene_.update == UpdateScheme::usl;
   dispatch_shape(scene_.shape, [&](auto shape) {
     using Shape = decltype(shape);
     gather<Shape>(dt);
     layer_gather(dt);
-    if (scene_.update == UpdateScheme::musl) {
+    if (!usl) {
       // MUSL (Sulsky et al. 1995): map the updated particle momenta back to the grid at x_p^n
       // and take the strain rate from that smoother field (both grids, coupled again on Phi).
       std::fill(grid.momentum.begin(), grid.momentum.end(), Vec<D>::Zero());
@@ -551,38 +631,40 @@ void Solver<D>::grid_to_particles(double dt) {
       lap(&PhaseTimes::grid_to_particles);
       layer_couple(true);
       lap(&PhaseTimes::coupling);
-      gather_velocity_gradient<Shape>();
+      gather_velocity_gradient<Shape>(dt);
       layer_gather_gradient();
     }
   });
   lap(&PhaseTimes::grid_to_particles);
-  update_stress(dt);
+  update_layer_stress(dt);
   lap(&PhaseTimes::stress);
-  advect_and_check();
+  advect_and_check(dt);
   lap(&PhaseTimes::advect);
 }
 
+// The constitutive update of the layer particles, whose velocity gradient the boundary grid
+// gave (or completed: Enhanced).
 template <int D>
-void Solver<D>::update_stress(double dt) {
+void Solver<D>::update_layer_stress(double dt) {
   auto& P = particles;
-  for (const auto& [begin, end] : groups_) {
-    std::visit(
-        [&, b = begin, e = end](const auto& material) {
-          tbb::parallel_for(tbb::blocked_range<std::size_t>(b, e, 1024), [&](const auto& r) {
-            for (std::size_t p = r.begin(); p != r.end(); ++p) {
-              mpm::update_stress<D>(material, P.velocity_gradient[p], dt, P.deformation_gradient[p],
-                                    P.stress[p], P.state[p]);
-            }
-          });
-        },
-        scene_.materials[P.material[begin]].model);
-  }
+  tbb::parallel_for(
+      tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+          const auto p = static_cast<std::size_t>(layer_list_[i]);
+          std::visit(
+              [&](const auto& material) {
+                mpm::update_stress<D>(material, layer_gradient_[i], dt, P.deformation_gradient[p],
+                                      P.stress[p], P.state[p]);
+              },
+              scene_.materials[static_cast<std::size_t>(P.material[p])].model);
+        }
+      });
 }
 
 // Move the particles, track the fastest one for the CFL step, and find the first particle that
 // went bad (non-finite, inverted, outside the grid) so the run can stop with its name.
 template <int D>
-void Solver<D>::advect_and_check() {
+void Solver<D>::advect_and_check(double dt) {
   auto& P = particles;
   const double lo_g = 1.0;
   const Vec<D> hi_g = (grid.nodes.template cast<double>().array() - 2.0).matrix();
@@ -594,7 +676,7 @@ void Solver<D>::advect_and_check() {
       tbb::blocked_range<std::size_t>(0, P.size(), 2048), Scan{},
       [&](const auto& r, Scan s) {
         for (std::size_t p = r.begin(); p != r.end(); ++p) {
-          P.position[p] += P.displacement[p];
+          P.position[p] += P.displacement.empty() ? Vec<D>(dt * P.velocity[p]) : P.displacement[p];
           const double speed = P.velocity[p].norm();
           const Vec<D> xg = (P.position[p] - grid.origin) * grid.inv_h;
           const bool ok = std::isfinite(speed) && std::isfinite(P.stress[p].sum()) &&

@@ -25,13 +25,13 @@ struct Particles {
   std::vector<int> body;
 
   // Dual-grid ownership (Blending): the wall whose layer holds the particle (-1: the standard
-  // grid owns it), the layer cell and the natural coordinates in it.
+  // grid owns it) and, this step, its place in the solver's list of layer particles (which
+  // holds the layer cell and the natural coordinates in it).
   std::vector<int> layer_wall;
-  std::vector<int> layer_cell;
-  std::vector<Eigen::Vector3d> layer_xi;
+  std::vector<int> layer_slot;
 
-  // Scratch filled during a step (kept here so that nothing is allocated inside a step).
-  std::vector<Mat<D>> velocity_gradient;
+  /// The step's displacement, dt times the gathered velocity: kept only where the particle
+  /// velocity is not that velocity (FLIP); sized by the solver, empty otherwise.
   std::vector<Vec<D>> displacement;
 
   [[nodiscard]] std::size_t size() const { return position.size(); }
@@ -49,10 +49,7 @@ struct Particles {
     material.resize(n, 0);
     body.resize(n, 0);
     layer_wall.resize(n, -1);
-    layer_cell.resize(n, -1);
-    layer_xi.resize(n, Eigen::Vector3d::Zero());
-    velocity_gradient.resize(n, Mat<D>::Zero());
-    displacement.resize(n, Vec<D>::Zero());
+    layer_slot.resize(n, -1);
   }
 };
 

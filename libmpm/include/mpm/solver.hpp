@@ -137,9 +137,11 @@ class Solver final : public Simulation {
   template <class Shape>
   void gather(double dt);
   template <class Shape>
-  void gather_velocity_gradient();
+  void gather_velocity_gradient(double dt);
+  template <class Sample>
+  void sample_and_update_stress(double dt, Sample&& sample);
+  void update_layer_stress(double dt);
   void constrain_walls(std::vector<Vec<D>>& velocity, bool record);
-  void update_stress(double dt);
   // Dual-grid (boundary-grid) counterparts of the phases, in dual_grid.cpp.
   void setup_dual_walls();
   void layer_scatter(bool with_force);
@@ -159,7 +161,7 @@ class Solver final : public Simulation {
   [[nodiscard]] bool owned_by_layer(std::size_t p) const {
     return particles.layer_wall[p] >= 0 && !dual_[particles.layer_wall[p]].enhanced;
   }
-  void advect_and_check();
+  void advect_and_check(double dt);
   void setup_sdf_wall(const DualWallSpec& spec);
   void constrain_sdf_walls(std::vector<Vec<D>>& velocity, bool record);
   void fill_bodies();
@@ -178,6 +180,16 @@ class Solver final : public Simulation {
   /// computed once by locate_in_layers() for the scatters, gathers and the remap of the step.
   std::vector<int> layer_list_;
   std::vector<AlphaStencil<D>> layer_stencil_;
+  std::vector<int> layer_cell_;            ///< per layer particle: its layer cell
+  std::vector<Eigen::Vector3d> layer_xi_;  ///< and its natural coordinates there
+  std::vector<Mat<D>> layer_gradient_;     ///< and its velocity gradient this step
+  /// locate_in_layers() per chunk of particles: the particles a layer holds, with their wall,
+  /// cell and natural coordinates (joined in chunk order, so the list stays in index order).
+  struct LayerHit {
+    int particle, wall, cell;
+    Eigen::Vector3d xi;
+  };
+  std::vector<std::vector<LayerHit>> layer_hits_;
   /// Signed-distance walls (the baseline): standard-grid nodes on or behind the surface, within
   /// reach of the kernel, with the unit normal into the material at each.
   struct SdfWall {
