@@ -318,11 +318,18 @@ void Solver<D>::scatter(bool with_force) {
 
 template <int D>
 void Solver<D>::particles_to_grid() {
-  grid.clear();
-  lap(&PhaseTimes::particles_to_grid);
   locate_in_layers();
   lap(&PhaseTimes::locate);
   bin_particles_into_slabs();
+  grid.begin_marking();
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, particles.size(), 4096), [&](const auto& r) {
+    for (std::size_t p = r.begin(); p != r.end(); ++p) {
+      grid.mark(particles.position[p]);
+    }
+  });
+  grid.finish_marking();
+  tbb::parallel_for(std::size_t{0}, grid.previous_blocks.size(),
+                    [&](std::size_t k) { grid.clear_previous(k); });
   dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true); });
   layer_scatter(true);
   lap(&PhaseTimes::particles_to_grid);
@@ -330,8 +337,8 @@ void Solver<D>::particles_to_grid() {
 
 template <int D>
 void Solver<D>::update_grid(double dt) {
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, grid.size(), 4096), [&](const auto& r) {
-    for (std::size_t n = r.begin(); n != r.end(); ++n) {
+  tbb::parallel_for(std::size_t{0}, grid.active_blocks.size(), [&](std::size_t b) {
+    grid.for_each_node(grid.active_blocks[b], [&](std::size_t n) {
       const double m = grid.mass[n];
       if (m > mass_threshold_) {
         grid.velocity[n] = grid.momentum[n] / m;
@@ -340,7 +347,7 @@ void Solver<D>::update_grid(double dt) {
         grid.velocity[n].setZero();
         grid.velocity_new[n].setZero();
       }
-    }
+    });
   });
   layer_update(dt);
 }
@@ -616,13 +623,16 @@ void Solver<D>::grid_to_particles(double dt) {
     if (!usl) {
       // MUSL (Sulsky et al. 1995): map the updated particle momenta back to the grid at x_p^n
       // and take the strain rate from that smoother field (both grids, coupled again on Phi).
-      std::fill(grid.momentum.begin(), grid.momentum.end(), Vec<D>::Zero());
+      tbb::parallel_for(std::size_t{0}, grid.active_blocks.size(), [&](std::size_t b) {
+        grid.for_each_node(grid.active_blocks[b],
+                           [&](std::size_t n) { grid.momentum[n].setZero(); });
+      });
       scatter<Shape>(false);
-      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, grid.size(), 4096), [&](const auto& r) {
-        for (std::size_t n = r.begin(); n != r.end(); ++n) {
+      tbb::parallel_for(std::size_t{0}, grid.active_blocks.size(), [&](std::size_t b) {
+        grid.for_each_node(grid.active_blocks[b], [&](std::size_t n) {
           const double m = grid.mass[n];
           grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
-        }
+        });
       });
       lap(&PhaseTimes::grid_to_particles);
       constrain_walls(grid.velocity, false);

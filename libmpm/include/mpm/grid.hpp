@@ -2,6 +2,10 @@
 // The standard Cartesian grid (the A-grid) as flat arrays, and the per-particle stencil of
 // tensor-product weights over it.
 
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
 #include <vector>
 
 #include "mpm/shape.hpp"
@@ -40,6 +44,14 @@ struct Grid {
     force.assign(n, Vec<D>::Zero());
     velocity.assign(n, Vec<D>::Zero());
     velocity_new.assign(n, Vec<D>::Zero());
+    for (int d = 0; d < D; ++d) {
+      blocks[d] = (nodes[d] + kBlock - 1) / kBlock;
+      halves[d] = (nodes[d] + 1) / 2;
+    }
+    block_active.assign(static_cast<std::size_t>(blocks.prod()), 0);
+    half_marked.assign(static_cast<std::size_t>(halves.prod()), 0);
+    active_blocks.clear();
+    previous_blocks.clear();
   }
   [[nodiscard]] std::size_t size() const { return static_cast<std::size_t>(nodes.prod()); }
   [[nodiscard]] int linear(const Index<D>& i) const { return i.dot(stride); }
@@ -54,10 +66,118 @@ struct Grid {
   [[nodiscard]] Vec<D> position(const Index<D>& i) const {
     return origin + h * i.template cast<double>();
   }
-  void clear() {
-    std::fill(mass.begin(), mass.end(), 0.0);
-    std::fill(momentum.begin(), momentum.end(), Vec<D>::Zero());
-    std::fill(force.begin(), force.end(), Vec<D>::Zero());
+
+  // Activity by blocks of kBlock^D nodes. Each step marks the blocks within reach of a particle
+  // (the nodes within two of its cell: every kernel's stencil); clearing, the grid update and
+  // the MUSL remap then run over those blocks only, and every node outside them holds zeros.
+  // A debris flow covers a small part of its hillside's box: the rest costs nothing per step.
+  // The particles mark half-blocks (2^D nodes: one store each); a block is active when a marked
+  // half-block lies within reach: node i's particles reach nodes i-2..i+2, so the block of nodes
+  // 4b..4b+3 is reached from the half-blocks 2b-1..2b+2.
+  static constexpr int kBlock = 4;
+  Index<D> blocks = Index<D>::Ones();      ///< blocks per axis
+  Index<D> halves = Index<D>::Ones();      ///< half-blocks per axis
+  std::vector<std::uint8_t> block_active;  ///< this step's flags
+  std::vector<std::uint8_t> half_marked;   ///< this step's particles' half-blocks
+  std::vector<int> active_blocks;          ///< this step's blocks, in index order
+  std::vector<int> previous_blocks;        ///< the step before's (what clear() must zero)
+
+  /// Starts a step's marking: the last step's blocks become the previous ones.
+  void begin_marking() {
+    for (const int b : active_blocks) block_active[static_cast<std::size_t>(b)] = 0;
+    std::swap(previous_blocks, active_blocks);
+    active_blocks.clear();
+    std::fill(half_marked.begin(), half_marked.end(), std::uint8_t{0});
+  }
+  /// Marks the half-block of the cell of x. Safe to call from several threads at once.
+  void mark(const Vec<D>& x) {
+    int linear_half = 0;
+    for (int d = 0; d < D; ++d) {
+      const int i = static_cast<int>(std::floor((x[d] - origin[d]) * inv_h));
+      linear_half = linear_half * halves[d] + std::clamp(i, 0, nodes[d] - 1) / 2;
+    }
+    std::atomic_ref<std::uint8_t>(half_marked[static_cast<std::size_t>(linear_half)])
+        .store(1, std::memory_order_relaxed);
+  }
+  /// Ends the marking: the blocks the marked half-blocks reach, listed in index order.
+  void finish_marking() {
+    Index<D> c = Index<D>::Zero();
+    for (std::size_t k = 0; k < half_marked.size(); ++k) {
+      if (half_marked[k] != 0) {
+        Index<D> lo, hi;
+        for (int d = 0; d < D; ++d) {
+          lo[d] = c[d] >= 1 ? (c[d] - 1) / 2 : 0;
+          hi[d] = std::min((c[d] + 1) / 2, blocks[d] - 1);
+        }
+        Index<D> b = lo;
+        while (true) {
+          int linear_block = 0;
+          for (int d = 0; d < D; ++d) linear_block = linear_block * blocks[d] + b[d];
+          block_active[static_cast<std::size_t>(linear_block)] = 1;
+          int d = D - 1;
+          while (d >= 0 && b[d] == hi[d]) {
+            b[d] = lo[d];
+            --d;
+          }
+          if (d < 0) break;
+          ++b[d];
+        }
+      }
+      for (int d = D - 1; d >= 0 && ++c[d] == halves[d]; --d) c[d] = 0;
+    }
+    for (std::size_t b = 0; b < block_active.size(); ++b) {
+      if (block_active[b] != 0) active_blocks.push_back(static_cast<int>(b));
+    }
+  }
+  /// Calls f(first, count) for each run of nodes of `block` contiguous in memory (along the
+  /// last axis).
+  template <class F>
+  void for_each_run(int block, F&& f) const {
+    Index<D> b;
+    for (int d = D - 1; d >= 0; --d) {
+      b[d] = block % blocks[d];
+      block /= blocks[d];
+    }
+    Index<D> lo, hi;
+    for (int d = 0; d < D; ++d) {
+      lo[d] = b[d] * kBlock;
+      hi[d] = std::min(lo[d] + kBlock, nodes[d]);
+    }
+    const int count = hi[D - 1] - lo[D - 1];
+    Index<D> i = lo;
+    while (true) {
+      f(linear(i), count);
+      int d = D - 2;
+      while (d >= 0 && i[d] + 1 == hi[d]) {
+        i[d] = lo[d];
+        --d;
+      }
+      if (d < 0) break;
+      ++i[d];
+    }
+  }
+  /// Calls f(node) for every node of `block`.
+  template <class F>
+  void for_each_node(int block, F&& f) const {
+    for_each_run(block, [&](int first, int count) {
+      for (int n = first; n < first + count; ++n) f(static_cast<std::size_t>(n));
+    });
+  }
+  /// Zeroes what the last step left in its block previous_blocks[k] for the particles-to-grid
+  /// transfer: mass, momentum and force, and the velocities if this step does not have the
+  /// block (so that every node outside the active blocks is zero). After the marking; the
+  /// blocks are disjoint, so they may be cleared in parallel.
+  void clear_previous(std::size_t k) {
+    const int b = previous_blocks[k];
+    const bool stays = block_active[static_cast<std::size_t>(b)] != 0;
+    for_each_run(b, [&](int first, int count) {
+      std::fill_n(mass.begin() + first, count, 0.0);
+      std::fill_n(momentum.begin() + first, count, Vec<D>::Zero());
+      std::fill_n(force.begin() + first, count, Vec<D>::Zero());
+      if (stays) return;
+      std::fill_n(velocity.begin() + first, count, Vec<D>::Zero());
+      std::fill_n(velocity_new.begin() + first, count, Vec<D>::Zero());
+    });
   }
 };
 
