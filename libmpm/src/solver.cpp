@@ -85,6 +85,22 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
         ghosts.emplace_back(n, grid.linear(i));
       }
     }
+    // Grouped by grid block, so that a step visits only the blocks it has active.
+    auto by_block = [&](auto& list, auto node_of) {
+      std::stable_sort(list.begin(), list.end(), [&](const auto& x, const auto& y) {
+        return grid.block_of(node_of(x)) < grid.block_of(node_of(y));
+      });
+      std::vector<BlockRun> runs;
+      for (int k = 0; k < static_cast<int>(list.size()); ++k) {
+        const int block = grid.block_of(node_of(list[static_cast<std::size_t>(k)]));
+        if (runs.empty() || runs.back().block != block) runs.push_back({block, k, k});
+        runs.back().end = k + 1;
+      }
+      return runs;
+    };
+    wall_node_runs_.push_back(by_block(nodes, [](int n) { return n; }));
+    wall_ghost_runs_.push_back(
+        by_block(ghosts, [](const std::pair<int, int>& g) { return g.first; }));
     wall_nodes_.push_back(std::move(nodes));
     wall_ghosts_.push_back(std::move(ghosts));
   }
@@ -361,28 +377,37 @@ void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record) {
     Vec<D> impulse = Vec<D>::Zero();
     std::visit(
         [&](const auto& condition) {
-          for (const int n : wall_nodes_[w]) {
-            const double m = grid.mass[n];
-            if (m <= mass_threshold_) continue;
-            const Vec<D> before = velocity[n];
-            velocity[n] = constrain_velocity<D>(condition, wall.contact.separable, normal, before);
-            impulse += m * (velocity[n] - before);
+          for (const BlockRun& run : wall_node_runs_[w]) {
+            if (grid.block_active[static_cast<std::size_t>(run.block)] == 0) continue;
+            for (int k = run.begin; k < run.end; ++k) {
+              const int n = wall_nodes_[w][static_cast<std::size_t>(k)];
+              const double m = grid.mass[n];
+              if (m <= mass_threshold_) continue;
+              const Vec<D> before = velocity[n];
+              velocity[n] =
+                  constrain_velocity<D>(condition, wall.contact.separable, normal, before);
+              impulse += m * (velocity[n] - before);
+            }
           }
           // A bonded wall is a symmetry plane of the velocity field: ghost nodes take the
           // mirror image of the node inside (normal component odd; tangential odd for sticky,
           // even otherwise), so wide kernels (B-spline, GIMP) see the wall where it is rather
           // than a wall smeared over the ghost layer.
-          for (const auto& [ghost, mirror] : wall_ghosts_[w]) {
-            const double m = grid.mass[ghost];
-            if (m <= mass_threshold_) continue;
-            const Vec<D> before = velocity[ghost];
-            const Vec<D>& inside = velocity[mirror];
-            if constexpr (std::is_same_v<std::decay_t<decltype(condition)>, Sticky>) {
-              velocity[ghost] = -inside;
-            } else {
-              velocity[ghost] = inside - 2.0 * inside.dot(normal) * normal;
+          for (const BlockRun& run : wall_ghost_runs_[w]) {
+            if (grid.block_active[static_cast<std::size_t>(run.block)] == 0) continue;
+            for (int k = run.begin; k < run.end; ++k) {
+              const auto& [ghost, mirror] = wall_ghosts_[w][static_cast<std::size_t>(k)];
+              const double m = grid.mass[ghost];
+              if (m <= mass_threshold_) continue;
+              const Vec<D> before = velocity[ghost];
+              const Vec<D>& inside = velocity[mirror];
+              if constexpr (std::is_same_v<std::decay_t<decltype(condition)>, Sticky>) {
+                velocity[ghost] = -inside;
+              } else {
+                velocity[ghost] = inside - 2.0 * inside.dot(normal) * normal;
+              }
+              impulse += m * (velocity[ghost] - before);
             }
-            impulse += m * (velocity[ghost] - before);
           }
         },
         wall.contact.condition);

@@ -82,6 +82,13 @@ struct Grid {
   std::vector<int> active_blocks;          ///< this step's blocks, in index order
   std::vector<int> previous_blocks;        ///< the step before's (what clear() must zero)
 
+  /// The block holding a node.
+  [[nodiscard]] int block_of(int node) const {
+    const Index<D> i = multi(node);
+    int b = 0;
+    for (int d = 0; d < D; ++d) b = b * blocks[d] + i[d] / kBlock;
+    return b;
+  }
   /// Starts a step's marking: the last step's blocks become the previous ones.
   void begin_marking() {
     for (const int b : active_blocks) block_active[static_cast<std::size_t>(b)] = 0;

@@ -171,7 +171,12 @@ class Solver final : public Simulation {
   Vec<D> gravity_;
   std::vector<Vec<D>> body_acceleration_;  ///< gravity + body force, per body
   std::vector<std::pair<std::size_t, std::size_t>> groups_;
-  std::vector<std::vector<int>> wall_nodes_;  ///< grid nodes on or beyond each wall
+  std::vector<std::vector<int>> wall_nodes_;  ///< grid nodes on or beyond each wall, by block
+  /// Runs of wall_nodes_ / wall_ghosts_ in one grid block (the step skips idle blocks).
+  struct BlockRun {
+    int block, begin, end;
+  };
+  std::vector<std::vector<BlockRun>> wall_node_runs_, wall_ghost_runs_;
   /// For bonded (non-separable) walls: (ghost node beyond the wall, its mirror image inside).
   std::vector<std::vector<std::pair<int, int>>> wall_ghosts_;
   std::vector<Eigen::Vector3d> wall_impulse_;  ///< box walls, then dual-wall parts
