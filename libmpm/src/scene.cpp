@@ -197,6 +197,15 @@ std::filesystem::path scene_relative(const Scene& scene, const std::string& file
 
 /// Where a mesh goes: "scale", "translate", "rotate" (degrees about x, y, z), for mesh walls and
 /// mesh bodies alike.
+/// R = Rz Ry Rx of angles in degrees (about x, then y, then z: the mesh import's convention).
+Eigen::Matrix3d rotation_from_degrees(const Eigen::Vector3d& degrees) {
+  const double deg = std::acos(-1.0) / 180.0;
+  return (Eigen::AngleAxisd(degrees[2] * deg, Eigen::Vector3d::UnitZ()) *
+          Eigen::AngleAxisd(degrees[1] * deg, Eigen::Vector3d::UnitY()) *
+          Eigen::AngleAxisd(degrees[0] * deg, Eigen::Vector3d::UnitX()))
+      .toRotationMatrix();
+}
+
 mpmgeom::ImportOptions read_placement(Reader& r) {
   mpmgeom::ImportOptions import;
   import.scale = r.positive("scale", 1.0);
@@ -335,11 +344,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
       } else {
         angles = shape.vector("rotation", 3);
       }
-      angles *= std::acos(-1.0) / 180.0;
-      body.rotation = (Eigen::AngleAxisd(angles[2], Eigen::Vector3d::UnitZ()) *
-                       Eigen::AngleAxisd(angles[1], Eigen::Vector3d::UnitY()) *
-                       Eigen::AngleAxisd(angles[0], Eigen::Vector3d::UnitX()))
-                          .toRotationMatrix();
+      body.rotation = rotation_from_degrees(angles);
       body.own_lattice = true;
       // The rotated corners bound the body.
       const Eigen::VectorXd centre = 0.5 * (body.min + body.max);
@@ -355,20 +360,36 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
     }
   } else if (type == "mesh") {
     // A closed surface (a source volume from CAD or a terrain tool) filled on the grid's
-    // sub-cell lattice.
+    // sub-cell lattice, or ("lattice": "body") on the same lattice in the file's own frame
+    // (anchored at its origin, along its axes, after "scale"), carried by the placement's
+    // rotation and translation: turning and moving the scene then turns and moves the particles
+    // with the source instead of seeding it afresh against the grid.
     body.shape = BodySpec::Shape::mesh;
     const mpmgeom::ImportOptions import = read_placement(shape);
+    const bool own_lattice = shape.choice("lattice", {"grid", "body"}, "grid") == "body";
     const std::filesystem::path file = scene_relative(scene, shape.string("file"));
     try {
       mpmgeom::RepairOptions repair;
       repair.require_closed = true;
-      const mpmgeom::TriangleMesh imported = mpmgeom::load_mesh(file, import);
+      mpmgeom::ImportOptions frame = import;
+      if (own_lattice) {
+        frame.rotation_deg.setZero();
+        frame.translation.setZero();
+      }
+      const mpmgeom::TriangleMesh imported = mpmgeom::load_mesh(file, frame);
       mpmgeom::check_extent(imported, file.string(),
                             (scene.box_max - scene.box_min).head(dim).norm());
       const mpmgeom::TriangleMesh mesh =
           mpmgeom::validate_and_repair(imported, file.string(), repair, nullptr);
-      body.points = mpmgeom::fill_closed_surface(mesh, scene.box_min.head<3>(), scene.spacing,
-                                                 body.particles_per_cell);
+      const Eigen::Vector3d origin =
+          own_lattice ? Eigen::Vector3d::Zero() : Eigen::Vector3d(scene.box_min.head<3>());
+      body.points =
+          mpmgeom::fill_closed_surface(mesh, origin, scene.spacing, body.particles_per_cell);
+      if (own_lattice) {
+        const Eigen::Matrix3d R = rotation_from_degrees(import.rotation_deg);
+        body.points =
+            ((body.points * R.transpose()).rowwise() + import.translation.transpose()).eval();
+      }
     } catch (const std::exception& e) {
       shape.fail_at(shape.child("file"), e.what());
     }
