@@ -270,7 +270,7 @@ struct LayerLocator::Impl {
 
   explicit Impl(const BoundaryGrid& boundary);
   void try_cell(int c, Query& q) const;
-  [[nodiscard]] Location locate(const Eigen::Vector3d& point) const;
+  [[nodiscard]] Location locate(const Eigen::Vector3d& point, int hint) const;
 
   static bool on_candidate(RTCPointQueryFunctionArguments* args) {
     auto& q = *static_cast<Query*>(args->userPtr);
@@ -436,12 +436,16 @@ void LayerLocator::Impl::try_cell(int c, Query& q) const {
   if (margin > kClearlyInside) q.settled = true;
 }
 
-LayerLocator::Location LayerLocator::Impl::locate(const Eigen::Vector3d& point) const {
+LayerLocator::Location LayerLocator::Impl::locate(const Eigen::Vector3d& point, int hint) const {
   Query q{this, Eigen::Vector3d::Zero(), {}, -kInf, false};
   if (bounds.empty()) return q.best;
   const int dim = dimension;
   for (int i = 0; i < dim; ++i) q.point[i] = point[i];
   if (!q.point.allFinite()) return q.best;
+  if (hint >= 0 && hint < static_cast<int>(bounds.size())) {
+    try_cell(hint, q);
+    if (q.settled) return q.best;  // clearly inside: no other cell holds the point
+  }
   RTCPointQuery query;
   const Eigen::Vector3d local = q.point - frame_origin;
   query.x = dim > 0 ? static_cast<float>(local[0]) : 0.0F;
@@ -461,8 +465,8 @@ LayerLocator::~LayerLocator() = default;
 LayerLocator::LayerLocator(LayerLocator&&) noexcept = default;
 LayerLocator& LayerLocator::operator=(LayerLocator&&) noexcept = default;
 
-LayerLocator::Location LayerLocator::locate(const Eigen::Vector3d& point) const {
-  return impl_->locate(point);
+LayerLocator::Location LayerLocator::locate(const Eigen::Vector3d& point, int hint) const {
+  return impl_->locate(point, hint);
 }
 
 void LayerLocator::locate(const Eigen::MatrixXd& points, std::vector<Location>& out,
@@ -483,7 +487,7 @@ void LayerLocator::locate(const Eigen::MatrixXd& points, std::vector<Location>& 
                         if (skip != nullptr && (*skip)[i] != 0) continue;
                         const auto row = static_cast<Eigen::Index>(i);
                         for (int k = 0; k < dim; ++k) p[k] = points(row, k);
-                        out[i] = impl_->locate(p);
+                        out[i] = impl_->locate(p, -1);
                       }
                     });
 }

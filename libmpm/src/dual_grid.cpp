@@ -152,14 +152,7 @@ template <int D>
 void Solver<D>::locate_in_layers() {
   auto& P = particles;
   for (auto& w : dual_) w.layer_particles = 0;
-  layer_list_.clear();
-  layer_cell_.clear();
-  layer_xi_.clear();
-  if (dual_.empty()) {
-    layer_stencil_.clear();
-    layer_gradient_.clear();
-    return;
-  }
+  if (dual_.empty()) return;
   const Index<D> cells = grid.nodes - Index<D>::Ones();
   constexpr std::size_t kChunk = 1024;
   layer_hits_.resize((P.size() + kChunk - 1) / kChunk);
@@ -168,6 +161,11 @@ void Solver<D>::locate_in_layers() {
     hits.clear();
     const std::size_t end = std::min(P.size(), (chunk + 1) * kChunk);
     for (std::size_t p = chunk * kChunk; p != end; ++p) {
+      // The layer cell of the step before (the list is rebuilt below, after this pass), tried
+      // first: particles move a fraction of a cell per step.
+      const int previous_wall = P.layer_wall[p];
+      const int previous_cell =
+          previous_wall >= 0 ? layer_cell_[static_cast<std::size_t>(P.layer_slot[p])] : -1;
       P.layer_wall[p] = -1;
       long cell = 0;
       for (int d = 0; d < D; ++d) {
@@ -181,7 +179,8 @@ void Solver<D>::locate_in_layers() {
         if (flags.empty() || flags[static_cast<std::size_t>(cell)] == 0) continue;
         Eigen::Vector3d x = Eigen::Vector3d::Zero();
         x.head<D>() = P.position[p];
-        const auto found = dual_[wi].locator->locate(x);
+        const auto found = dual_[wi].locator->locate(
+            x, previous_wall == static_cast<int>(wi) ? previous_cell : -1);
         if (found.cell >= 0) {
           P.layer_wall[p] = static_cast<int>(wi);
           hits.push_back({static_cast<int>(p), static_cast<int>(wi), found.cell, found.xi});
@@ -190,6 +189,9 @@ void Solver<D>::locate_in_layers() {
       }
     }
   });
+  layer_list_.clear();
+  layer_cell_.clear();
+  layer_xi_.clear();
   for (const auto& hits : layer_hits_) {
     for (const LayerHit& hit : hits) {
       P.layer_slot[hit.particle] = static_cast<int>(layer_list_.size());

@@ -215,6 +215,13 @@ void expect_round_trip(const BoundaryGrid& g, int samples, std::uint64_t seed) {
     const LayerLocator::Location loc = locator.locate(p);
     expected_cell[static_cast<std::size_t>(n)] = loc.cell;
     ASSERT_GE(loc.cell, 0) << "sample " << n << " cell " << c;
+    // A hint (the cell of the step before) changes nothing, right, wrong or out of range.
+    for (const int hint :
+         {static_cast<int>(c), static_cast<int>(pick(rng)), -1, static_cast<int>(g.cell_count())}) {
+      const LayerLocator::Location hinted = locator.locate(p, hint);
+      EXPECT_EQ(hinted.cell, loc.cell) << "sample " << n << " hint " << hint;
+      EXPECT_EQ(hinted.xi, loc.xi) << "sample " << n << " hint " << hint;
+    }
     if (loc.cell == static_cast<int>(c)) {
       ++same;
       EXPECT_LT((loc.xi - xi).cwiseAbs().maxCoeff(), 1e-9) << "cell " << c;
@@ -298,6 +305,13 @@ TEST(Locator, PointsOnSharedFacesBelongToOneCell) {
     const LayerLocator::Location again = locator.locate(p);
     EXPECT_EQ(again.cell, first.cell);
     EXPECT_EQ(again.xi, first.xi);
+    // Hinted with a neighbour sharing the face: still the same cell (the point is not clearly
+    // inside either, so the full query decides).
+    for (const int hint : {first.cell - 1, first.cell + 1}) {
+      const LayerLocator::Location hinted = locator.locate(p, hint);
+      EXPECT_EQ(hinted.cell, first.cell);
+      EXPECT_EQ(hinted.xi, first.xi);
+    }
   }
   // 1D: the node between two segments goes to one of them (whichever it is deeper in after
   // round-off), with the matching coordinate.

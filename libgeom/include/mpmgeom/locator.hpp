@@ -35,8 +35,10 @@ class LayerLocator {
   LayerLocator(LayerLocator&&) noexcept;  ///< a moved-from locator may only be destroyed
   LayerLocator& operator=(LayerLocator&&) noexcept;
 
-  /// `point`: the first `dimension` entries are used. Thread-safe.
-  [[nodiscard]] Location locate(const Eigen::Vector3d& point) const;
+  /// `point`: the first `dimension` entries are used. Thread-safe. `hint`: a cell to try first
+  /// (a particle's cell of the step before); a point clearly inside it is in no other cell, so
+  /// the answer is the same as without it, found without the Embree query.
+  [[nodiscard]] Location locate(const Eigen::Vector3d& point, int hint = -1) const;
   /// points: #P x dimension. Parallel (TBB). `skip` (optional, #P): 1 = do not query (the point
   /// is known to be outside the layer, e.g. from layer_cell_flags), result cell -1.
   void locate(const Eigen::MatrixXd& points, std::vector<Location>& out,
