@@ -36,6 +36,14 @@
 
 namespace mpmgeom {
 
+Eigen::Matrix3d rotation_from_degrees(const Eigen::Vector3d& degrees) {
+  constexpr double deg = std::numbers::pi / 180.0;
+  return (Eigen::AngleAxisd(degrees.z() * deg, Eigen::Vector3d::UnitZ()) *
+          Eigen::AngleAxisd(degrees.y() * deg, Eigen::Vector3d::UnitY()) *
+          Eigen::AngleAxisd(degrees.x() * deg, Eigen::Vector3d::UnitX()))
+      .toRotationMatrix();
+}
+
 namespace {
 
 namespace fs = std::filesystem;
@@ -187,14 +195,8 @@ Eigen::Matrix4d to_eigen(const aiMatrix4x4& m) {
 }
 
 Eigen::Affine3d placement(const ImportOptions& options) {
-  constexpr double deg = std::numbers::pi / 180.0;
-  const Eigen::Matrix3d rotation =
-      (Eigen::AngleAxisd(options.rotation_deg.z() * deg, Eigen::Vector3d::UnitZ()) *
-       Eigen::AngleAxisd(options.rotation_deg.y() * deg, Eigen::Vector3d::UnitY()) *
-       Eigen::AngleAxisd(options.rotation_deg.x() * deg, Eigen::Vector3d::UnitX()))
-          .toRotationMatrix();
   Eigen::Affine3d t = Eigen::Affine3d::Identity();
-  t.linear() = rotation * options.scale;
+  t.linear() = rotation_from_degrees(options.rotation_deg) * options.scale;
   t.translation() = options.translation;
   return t;
 }

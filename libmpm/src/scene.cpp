@@ -197,15 +197,6 @@ std::filesystem::path scene_relative(const Scene& scene, const std::string& file
 
 /// Where a mesh goes: "scale", "translate", "rotate" (degrees about x, y, z), for mesh walls and
 /// mesh bodies alike.
-/// R = Rz Ry Rx of angles in degrees (about x, then y, then z: the mesh import's convention).
-Eigen::Matrix3d rotation_from_degrees(const Eigen::Vector3d& degrees) {
-  const double deg = std::acos(-1.0) / 180.0;
-  return (Eigen::AngleAxisd(degrees[2] * deg, Eigen::Vector3d::UnitZ()) *
-          Eigen::AngleAxisd(degrees[1] * deg, Eigen::Vector3d::UnitY()) *
-          Eigen::AngleAxisd(degrees[0] * deg, Eigen::Vector3d::UnitX()))
-      .toRotationMatrix();
-}
-
 mpmgeom::ImportOptions read_placement(Reader& r) {
   mpmgeom::ImportOptions import;
   import.scale = r.positive("scale", 1.0);
@@ -344,7 +335,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
       } else {
         angles = shape.vector("rotation", 3);
       }
-      body.rotation = rotation_from_degrees(angles);
+      body.rotation = mpmgeom::rotation_from_degrees(angles);
       body.own_lattice = true;
       // The rotated corners bound the body.
       const Eigen::VectorXd centre = 0.5 * (body.min + body.max);
@@ -386,7 +377,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
       body.points =
           mpmgeom::fill_closed_surface(mesh, origin, scene.spacing, body.particles_per_cell);
       if (own_lattice) {
-        const Eigen::Matrix3d R = rotation_from_degrees(import.rotation_deg);
+        const Eigen::Matrix3d R = mpmgeom::rotation_from_degrees(import.rotation_deg);
         body.points =
             ((body.points * R.transpose()).rowwise() + import.translation.transpose()).eval();
       }

@@ -352,18 +352,23 @@ void Solver<D>::particles_to_grid() {
 }
 
 template <int D>
+template <class F>
+void Solver<D>::for_each_active_node(F&& f) {
+  tbb::parallel_for(std::size_t{0}, grid.active_blocks.size(),
+                    [&](std::size_t b) { grid.for_each_node(grid.active_blocks[b], f); });
+}
+
+template <int D>
 void Solver<D>::update_grid(double dt) {
-  tbb::parallel_for(std::size_t{0}, grid.active_blocks.size(), [&](std::size_t b) {
-    grid.for_each_node(grid.active_blocks[b], [&](std::size_t n) {
-      const double m = grid.mass[n];
-      if (m > mass_threshold_) {
-        grid.velocity[n] = grid.momentum[n] / m;
-        grid.velocity_new[n] = grid.velocity[n] + dt * grid.force[n] / m;
-      } else {
-        grid.velocity[n].setZero();
-        grid.velocity_new[n].setZero();
-      }
-    });
+  for_each_active_node([&](std::size_t n) {
+    const double m = grid.mass[n];
+    if (m > mass_threshold_) {
+      grid.velocity[n] = grid.momentum[n] / m;
+      grid.velocity_new[n] = grid.velocity[n] + dt * grid.force[n] / m;
+    } else {
+      grid.velocity[n].setZero();
+      grid.velocity_new[n].setZero();
+    }
   });
   layer_update(dt);
 }
@@ -533,13 +538,8 @@ void Solver<D>::gather(double dt) {
       }
       if (displace) P.displacement[p] = dt * s.value;
       if constexpr ((Parts & kGradient) != 0) {
-        if (!usl) return false;      // the gradient was the affine matrix (linear kernel, GIMP)
-        if (P.layer_wall[p] >= 0) {  // Enhanced: layer_gather adds the layer's, then the stress
-          layer_gradient_[static_cast<std::size_t>(P.layer_slot[p])] = s.gradient;
-          return false;
-        }
-        L = s.gradient;
-        return true;
+        if (!usl) return false;  // the gradient was the affine matrix (linear kernel, GIMP)
+        return take_gradient(p, s.gradient, L);  // Enhanced layer particles: layer_gather adds
       }
       return false;
     };
@@ -576,14 +576,10 @@ void Solver<D>::gather_velocity_gradient(double dt) {
   sample_and_update_stress(dt, [&](std::size_t p, Mat<D>& L) {
     if (owned_by_layer(p)) return false;  // layer_gather_gradient
     const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
-    const Mat<D> gradient =
-        sample_grid<kGradient>(grid, st, grid.velocity, grid.velocity, mass_threshold_).gradient;
-    if (P.layer_wall[p] >= 0) {  // Enhanced: layer_gather_gradient adds the layer's
-      layer_gradient_[static_cast<std::size_t>(P.layer_slot[p])] = gradient;
-      return false;
-    }
-    L = gradient;
-    return true;
+    // Enhanced layer particles: layer_gather_gradient adds the layer's.
+    return take_gradient(
+        p, sample_grid<kGradient>(grid, st, grid.velocity, grid.velocity, mass_threshold_).gradient,
+        L);
   });
 }
 
@@ -648,16 +644,11 @@ void Solver<D>::grid_to_particles(double dt) {
     if (!usl) {
       // MUSL (Sulsky et al. 1995): map the updated particle momenta back to the grid at x_p^n
       // and take the strain rate from that smoother field (both grids, coupled again on Phi).
-      tbb::parallel_for(std::size_t{0}, grid.active_blocks.size(), [&](std::size_t b) {
-        grid.for_each_node(grid.active_blocks[b],
-                           [&](std::size_t n) { grid.momentum[n].setZero(); });
-      });
+      for_each_active_node([&](std::size_t n) { grid.momentum[n].setZero(); });
       scatter<Shape>(false);
-      tbb::parallel_for(std::size_t{0}, grid.active_blocks.size(), [&](std::size_t b) {
-        grid.for_each_node(grid.active_blocks[b], [&](std::size_t n) {
-          const double m = grid.mass[n];
-          grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
-        });
+      for_each_active_node([&](std::size_t n) {
+        const double m = grid.mass[n];
+        grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();
       });
       lap(&PhaseTimes::grid_to_particles);
       constrain_walls(grid.velocity, false);

@@ -16,6 +16,7 @@
 
 #include "mpm/run.hpp"
 #include "mpm/scene.hpp"
+#include "support/scenes.hpp"
 
 namespace {
 
@@ -69,14 +70,20 @@ json coarse() {
   return doc;
 }
 
-/// The scene `base` turned by R = Rz(z) Ry(y) Rx(x) (the mesh import's convention) about the
-/// origin: terrain, barrier, source and gravity, and the grid box around the turned box.
-json turned(const json& base, const Eigen::Vector3d& angles) {
+/// R = Rz(z) Ry(y) Rx(x) for angles in degrees (the mesh import's convention), written out here
+/// so that the tests check the library's.
+Eigen::Matrix3d rotation(const Eigen::Vector3d& angles) {
   const double deg = std::numbers::pi / 180.0;
-  const Eigen::Matrix3d R = (Eigen::AngleAxisd(angles.z() * deg, Eigen::Vector3d::UnitZ()) *
-                             Eigen::AngleAxisd(angles.y() * deg, Eigen::Vector3d::UnitY()) *
-                             Eigen::AngleAxisd(angles.x() * deg, Eigen::Vector3d::UnitX()))
-                                .toRotationMatrix();
+  return (Eigen::AngleAxisd(angles.z() * deg, Eigen::Vector3d::UnitZ()) *
+          Eigen::AngleAxisd(angles.y() * deg, Eigen::Vector3d::UnitY()) *
+          Eigen::AngleAxisd(angles.x() * deg, Eigen::Vector3d::UnitX()))
+      .toRotationMatrix();
+}
+
+/// The scene `base` turned by rotation(angles) about the origin: terrain, barrier, source and
+/// gravity, and the grid box around the turned box.
+json turned(const json& base, const Eigen::Vector3d& angles) {
+  const Eigen::Matrix3d R = rotation(angles);
   json doc = base;
   const json rotate = {angles.x(), angles.y(), angles.z()};
   for (auto& wall : doc["walls"]) {
@@ -116,28 +123,17 @@ TEST(MeshBodyLattice, TurnsAndMovesWithTheMesh) {
                   {"file", (fs::path(MPM_DATA_DIR) / "meshes" / "unit_cube.obj").string()},
                   {"lattice", lattice}};
     shape.update(placement);
-    const json doc = {
-        {"dimension", 3},
-        {"grid", {{"min", {-2.0, -2.0, -2.0}}, {"max", {2.0, 2.0, 2.0}}, {"spacing", 0.25}}},
-        {"materials",
-         {{{"name", "m"},
-           {"model", "neo_hookean"},
-           {"density", 1000.0},
-           {"youngs_modulus", 1e6},
-           {"poisson_ratio", 0.3}}}},
-        {"bodies", {{{"material", "m"}, {"particles_per_cell", 2}, {"shape", shape}}}},
-        {"time", {{"end", 0.01}}}};
-    return mpm::parse_scene(doc, "<test>").bodies[0].points;
+    json doc = mpm::test::box_scene(3, "bspline2", 0.25);
+    doc["grid"]["min"] = {-2.0, -2.0, -2.0};
+    doc["grid"]["max"] = {2.0, 2.0, 2.0};
+    doc["bodies"][0]["shape"] = shape;
+    return mpm::test::parse(doc).bodies[0].points;
   };
   const Eigen::Vector3d t(0.3, -0.2, 0.1);
   const Eigen::MatrixX3d own = scene(json::object(), "body");
   const Eigen::MatrixX3d placed =
       scene({{"rotate", {17.0, -23.0, 31.0}}, {"translate", {t.x(), t.y(), t.z()}}}, "body");
-  const double deg = std::numbers::pi / 180.0;
-  const Eigen::Matrix3d R = (Eigen::AngleAxisd(31.0 * deg, Eigen::Vector3d::UnitZ()) *
-                             Eigen::AngleAxisd(-23.0 * deg, Eigen::Vector3d::UnitY()) *
-                             Eigen::AngleAxisd(17.0 * deg, Eigen::Vector3d::UnitX()))
-                                .toRotationMatrix();
+  const Eigen::Matrix3d R = rotation({17.0, -23.0, 31.0});
   ASSERT_EQ(own.rows(), 4 * 4 * 4 * 2 * 2 * 2);  // 8^3 sub-cells of 0.125 in the unit cube
   ASSERT_EQ(placed.rows(), own.rows());
   for (Eigen::Index p = 0; p < own.rows(); ++p) {

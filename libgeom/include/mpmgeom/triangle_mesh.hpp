@@ -31,6 +31,10 @@ struct TriangleMesh {
   std::vector<std::string> part_names;
 };
 
+/// R = Rz * Ry * Rx for angles (x, y, z) in degrees: rotations about the fixed x, then y, then z
+/// axes (ImportOptions' rotation, and the scene's other rotations, which follow it).
+Eigen::Matrix3d rotation_from_degrees(const Eigen::Vector3d& degrees);
+
 /// How load_mesh() places the file's geometry in the simulation frame. A point p of the file
 /// (after its own node transforms) becomes  R * (scale * p) + translation,  with
 /// R = Rz * Ry * Rx: rotations about the fixed x, then y, then z axes through the origin, in

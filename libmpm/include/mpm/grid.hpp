@@ -82,12 +82,15 @@ struct Grid {
   std::vector<int> active_blocks;          ///< this step's blocks, in index order
   std::vector<int> previous_blocks;        ///< the step before's (what clear() must zero)
 
+  /// Linear index of the block with per-axis indices b (last axis fastest, as nodes).
+  [[nodiscard]] int block_index(const Index<D>& b) const {
+    int linear_block = 0;
+    for (int d = 0; d < D; ++d) linear_block = linear_block * blocks[d] + b[d];
+    return linear_block;
+  }
   /// The block holding a node.
   [[nodiscard]] int block_of(int node) const {
-    const Index<D> i = multi(node);
-    int b = 0;
-    for (int d = 0; d < D; ++d) b = b * blocks[d] + i[d] / kBlock;
-    return b;
+    return block_index((multi(node).array() / kBlock).matrix());
   }
   /// Starts a step's marking: the last step's blocks become the previous ones.
   void begin_marking() {
@@ -118,9 +121,7 @@ struct Grid {
         }
         Index<D> b = lo;
         while (true) {
-          int linear_block = 0;
-          for (int d = 0; d < D; ++d) linear_block = linear_block * blocks[d] + b[d];
-          block_active[static_cast<std::size_t>(linear_block)] = 1;
+          block_active[static_cast<std::size_t>(block_index(b))] = 1;
           int d = D - 1;
           while (d >= 0 && b[d] == hi[d]) {
             b[d] = lo[d];

@@ -140,6 +140,20 @@ class Solver final : public Simulation {
   void gather_velocity_gradient(double dt);
   template <class Sample>
   void sample_and_update_stress(double dt, Sample&& sample);
+  /// For sample_and_update_stress(): the standard grid's velocity gradient at particle p goes to
+  /// L for the update now (true), or, for a particle an Enhanced layer also moves, to its layer
+  /// list entry, where the layer's part is added before its update (false).
+  bool take_gradient(std::size_t p, const Mat<D>& gradient, Mat<D>& L) {
+    if (particles.layer_wall[p] >= 0) {
+      layer_gradient_[static_cast<std::size_t>(particles.layer_slot[p])] = gradient;
+      return false;
+    }
+    L = gradient;
+    return true;
+  }
+  /// f(node) for every node of the grid's active blocks, in parallel.
+  template <class F>
+  void for_each_active_node(F&& f);
   void update_layer_stress(double dt);
   void constrain_walls(std::vector<Vec<D>>& velocity, bool record);
   // Dual-grid (boundary-grid) counterparts of the phases, in dual_grid.cpp.
