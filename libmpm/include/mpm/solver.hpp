@@ -135,6 +135,10 @@ class Solver final : public Simulation {
   template <class Shape>
   void scatter(bool with_force);
   template <class Shape>
+  void scatter_factorised(const Stencil<D, Shape>& st, double m, const double (&v)[D],
+                          const double (&C)[D][D], const double (*body_force)[D],
+                          const double (*stress)[D][D]);
+  template <class Shape>
   void gather(double dt);
   template <class Shape>
   void gather_velocity_gradient(double dt);
