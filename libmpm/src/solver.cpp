@@ -284,8 +284,16 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   const auto& w = st.w;
   const auto& dw = st.dw;
   const auto& dx = st.dx;
-  double wx2[S];
-  for (int k = 0; k < S; ++k) wx2[k] = w[2][k] * dx[2][k];
+  // Along the last axis a row's S nodes are contiguous: their D S momentum (force) components
+  // are updated as one vector, with the per-node weights repeated per component.
+  static_assert(sizeof(Vec<3>) == 3 * sizeof(double), "grid vectors must be packed");
+  constexpr int R = 3 * S;
+  double w2[R], wx2[R], dw2[R];
+  for (int c = 0; c < R; ++c) {
+    w2[c] = w[2][c / 3];
+    wx2[c] = w[2][c / 3] * dx[2][c / 3];
+    dw2[c] = dw[2][c / 3];
+  }
   double mv[3], mc[3][3];
   for (int a = 0; a < 3; ++a) {
     mv[a] = m * v[a];
@@ -295,35 +303,33 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
     for (int j = 0; j < S; ++j) {
       const double wij = w[0][i] * w[1][j];
       const int row = st.base_linear + i * grid.stride[0] + j * grid.stride[1];
-      double p[3], q[3];  // momentum = p w_k + q w_k dx_k
+      double p[R], q[R];  // momentum = p w_k + q w_k dx_k
       for (int a = 0; a < 3; ++a) {
         p[a] = wij * (mv[a] + mc[a][0] * dx[0][i] + mc[a][1] * dx[1][j]);
         q[a] = wij * mc[a][2];
       }
-      if (body_force == nullptr) {
-        for (int k = 0; k < S; ++k) {
-          double* momentum = grid.momentum[row + k].data();
-          for (int a = 0; a < 3; ++a) momentum[a] += p[a] * w[2][k] + q[a] * wx2[k];
-        }
-        continue;
+      for (int c = 3; c < R; ++c) {
+        p[c] = p[c - 3];
+        q[c] = q[c - 3];
       }
+      double* momentum = grid.momentum[row].data();
+      for (int c = 0; c < R; ++c) momentum[c] += p[c] * w2[c] + q[c] * wx2[c];
+      if (body_force == nullptr) continue;
       const auto& mb = *body_force;
       const auto& vs = *stress;
-      double r[3], t[3];  // force = r w_k + t dw_k
+      double r[R], t[R];  // force = r w_k + t dw_k
       for (int a = 0; a < 3; ++a) {
         r[a] = wij * mb[a] + vs[a][0] * dw[0][i] * w[1][j] + vs[a][1] * w[0][i] * dw[1][j];
         t[a] = wij * vs[a][2];
       }
-      const double wm = wij * m;
-      for (int k = 0; k < S; ++k) {
-        grid.mass[row + k] += wm * w[2][k];
-        double* momentum = grid.momentum[row + k].data();
-        double* force = grid.force[row + k].data();
-        for (int a = 0; a < 3; ++a) {
-          momentum[a] += p[a] * w[2][k] + q[a] * wx2[k];
-          force[a] += r[a] * w[2][k] + t[a] * dw[2][k];
-        }
+      for (int c = 3; c < R; ++c) {
+        r[c] = r[c - 3];
+        t[c] = t[c - 3];
       }
+      double* force = grid.force[row].data();
+      for (int c = 0; c < R; ++c) force[c] += r[c] * w2[c] + t[c] * dw2[c];
+      const double wm = wij * m;
+      for (int k = 0; k < S; ++k) grid.mass[row + k] += wm * w[2][k];
     }
   }
 }
