@@ -106,6 +106,30 @@ TEST(DruckerPrager, ExtensionEndsAtApexOrTensionCutoff) {
   }
 }
 
+// Spray: cohesionless sand pulled apart without end (a particle thrown off a flow) is
+// stress-free, and its volume stops at kSeparatedMaxDilation instead of growing with the
+// extension (e^3 = 20 here); compressed again, it carries stress at once, from that volume.
+TEST(DruckerPrager, PulledApartVolumeStopsAtTheLoosestDilation) {
+  DruckerPrager m = drucker_prager(30.0, 0.0, 0.0);
+  Mat<3> sigma = Mat<3>::Zero(), F = Mat<3>::Identity();
+  PointState state;
+  Mat<3> L = Mat<3>::Identity();
+  L(0, 1) = 0.3;  // with some shear and spin
+  const double dt = 1e-3;
+  for (int step = 0; step < 1000; ++step) {
+    update_stress<3>(m, L, dt, F, sigma, state);
+    EXPECT_LE(F.determinant(), kSeparatedMaxDilation * (1.0 + 1e-12));
+    EXPECT_EQ(sigma.norm(), 0.0);
+  }
+  EXPECT_NEAR(F.determinant(), kSeparatedMaxDilation, 1e-12);  // reached and held
+  // Compression: the volume falls by the step's strain, and the mean stress is the elastic one.
+  const double J_before = F.determinant();
+  update_stress<3>(m, -Mat<3>::Identity(), dt, F, sigma, state);
+  EXPECT_NEAR(F.determinant(), J_before * std::pow(1.0 - dt, 3), 1e-12);
+  const Lame l = lame(m.youngs_modulus, m.poisson_ratio);
+  EXPECT_NEAR(sigma.trace() / 3.0, -(3.0 * l.lambda + 2.0 * l.mu) * dt, 1e-9 * l.lambda * dt);
+}
+
 // Cohesionless sand cannot carry tension: any extension leaves it stress-free (the apex is 0).
 // mu(I) in steady simple shear (L_xy = gamma_dot, with spin) from an isotropic pressure P0:
 // simple shear keeps the volume and the Jaumann rotation keeps the trace, and without dilatancy
