@@ -210,6 +210,25 @@ TEST(NewtonianFluid, TaitPressureAndNoTension) {
   }
 }
 
+// Spray of a fluid: expanded without end it stays pressure-free and its volume stops at
+// kSeparatedMaxDilation, with the shear stress of the rate it is given (Bingham and Newtonian).
+TEST(Fluids, ExpandedVolumeStopsAtTheLoosestDilation) {
+  const NewtonianFluid water{1000.0, 20.0, 7.0, 1e-3};
+  const Bingham debris{2000.0, 30.0, 7.0, 500.0, 20.0, 200.0};
+  auto expand = [](const auto& m) {
+    Mat<3> sigma = Mat<3>::Zero(), F = Mat<3>::Identity(), L = Mat<3>::Identity();
+    PointState state;
+    for (int step = 0; step < 1000; ++step) {
+      update_stress<3>(m, L, 1e-3, F, sigma, state);
+      EXPECT_LE(F.determinant(), kSeparatedMaxDilation * (1.0 + 1e-12));
+      EXPECT_NEAR(sigma.trace(), 0.0, 1e-9);  // no pressure, a traceless viscous stress
+    }
+    EXPECT_NEAR(F.determinant(), kSeparatedMaxDilation, 1e-12);
+  };
+  expand(water);
+  expand(debris);
+}
+
 // Simple shear of Bingham debris: tau = eta_p gamma_dot + tau_y (1 - exp(-m gamma_dot)), which
 // tends to the Bingham line tau_y + eta_p gamma_dot once m gamma_dot >> 1.
 TEST(Bingham, SimpleShearFlowCurve) {

@@ -284,7 +284,14 @@ template <int D, Fluid M>
 void update_stress(const M& m, const Mat<D>& L, double dt, Mat<D>& F, Mat<D>& sigma,
                    PointState& /*state*/) {
   F = (Mat<D>::Identity() + dt * L) * F;
-  const double J = F.determinant();
+  double J = F.determinant();
+  // Spray: above J = 1 the fluid is pressure-free (it cavitates rather than pull), and beyond
+  // kSeparatedMaxDilation it has come apart: its volume stops there (as Drucker-Prager's), so a
+  // drop thrown off a flow does not land with a huge volume to weight its viscous stress.
+  if (J > kSeparatedMaxDilation) {
+    F *= std::pow(kSeparatedMaxDilation / J, 1.0 / D);
+    J = kSeparatedMaxDilation;
+  }
   // The deviator of the rate of deformation in 3D terms (the missing directions have D = 0).
   const Mat<D> Dv = 0.5 * (L + L.transpose());
   const double third_trace = Dv.trace() / 3.0;
