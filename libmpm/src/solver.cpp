@@ -299,35 +299,36 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
     mv[a] = m * v[a];
     for (int b = 0; b < 3; ++b) mc[a][b] = m * C[a][b];
   }
+  // out[3k + a] += x_a u[3k + a] + y_a z[3k + a] over the row's S nodes (x, y repeated per node
+  // so that the update is one vector expression).
+  auto add_row = [](double* out, const double(&x)[3], const double* u, const double(&y)[3],
+                    const double* z) {
+    double xr[R], yr[R];
+    for (int c = 0; c < R; ++c) {
+      xr[c] = x[c % 3];
+      yr[c] = y[c % 3];
+    }
+    for (int c = 0; c < R; ++c) out[c] += xr[c] * u[c] + yr[c] * z[c];
+  };
   for (int i = 0; i < S; ++i) {
     for (int j = 0; j < S; ++j) {
       const double wij = w[0][i] * w[1][j];
       const int row = st.base_linear + i * grid.stride[0] + j * grid.stride[1];
-      double p[R], q[R];  // momentum = p w_k + q w_k dx_k
+      double p[3], q[3];  // momentum = p w_k + q w_k dx_k
       for (int a = 0; a < 3; ++a) {
         p[a] = wij * (mv[a] + mc[a][0] * dx[0][i] + mc[a][1] * dx[1][j]);
         q[a] = wij * mc[a][2];
       }
-      for (int c = 3; c < R; ++c) {
-        p[c] = p[c - 3];
-        q[c] = q[c - 3];
-      }
-      double* momentum = grid.momentum[row].data();
-      for (int c = 0; c < R; ++c) momentum[c] += p[c] * w2[c] + q[c] * wx2[c];
+      add_row(grid.momentum[row].data(), p, w2, q, wx2);
       if (body_force == nullptr) continue;
       const auto& mb = *body_force;
       const auto& vs = *stress;
-      double r[R], t[R];  // force = r w_k + t dw_k
+      double r[3], t[3];  // force = r w_k + t dw_k
       for (int a = 0; a < 3; ++a) {
         r[a] = wij * mb[a] + vs[a][0] * dw[0][i] * w[1][j] + vs[a][1] * w[0][i] * dw[1][j];
         t[a] = wij * vs[a][2];
       }
-      for (int c = 3; c < R; ++c) {
-        r[c] = r[c - 3];
-        t[c] = t[c - 3];
-      }
-      double* force = grid.force[row].data();
-      for (int c = 0; c < R; ++c) force[c] += r[c] * w2[c] + t[c] * dw2[c];
+      add_row(grid.force[row].data(), r, w2, t, dw2);
       const double wm = wij * m;
       for (int k = 0; k < S; ++k) grid.mass[row + k] += wm * w[2][k];
     }

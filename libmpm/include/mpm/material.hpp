@@ -196,15 +196,26 @@ Eigen::Matrix3d stress_3d(const Mat<D>& sigma, double stress_zz) {
   return s3;
 }
 
-/// The largest volume ratio J = det F a Drucker-Prager particle keeps while it is being pulled
-/// apart (its trial mean stress past the tension cut-off). Past the cut-off the material has
-/// come apart and carries no stress, and the volume it claims beyond a loose packing means
-/// nothing physical; but it weights the particle's stress once it is compressed again (the
-/// force is V sigma grad N). A lone particle thrown off a debris flow's edge kept stretching to
-/// J ~ 48,000 (750 m^3 for a 0.016 m^3 particle), then landed at 24 m/s and the stress of that
-/// volume inverted it (docs/debris.md). A particle in contact is far from it (a granular mass
-/// that keeps its grains touching dilates by a few tens of percent), so only spray is capped.
+/// The largest volume ratio J = det F of a particle that has come apart: a Drucker-Prager
+/// particle being pulled apart (its trial mean stress past the tension cut-off) or a fluid one
+/// (pressure-free above J = 1). It carries no pressure, and the volume it claims beyond a loose
+/// packing means nothing physical; but it weights the particle's stress once it is compressed or
+/// sheared again (the force is V sigma grad N). A lone particle thrown off a debris flow's edge
+/// kept stretching to J ~ 48,000 (750 m^3 for a 0.016 m^3 particle), then landed at 24 m/s and
+/// the stress of that volume inverted it (docs/debris.md). A particle in contact is far from it
+/// (a granular mass that keeps its grains touching dilates by tens of percent): only spray is
+/// capped.
 inline constexpr double kSeparatedMaxDilation = 2.0;
+
+/// Scales F isotropically (its shape kept) so that det F <= kSeparatedMaxDilation; returns
+/// det F after.
+template <int D>
+double cap_separated_dilation(Mat<D>& F) {
+  const double J = F.determinant();
+  if (!(J > kSeparatedMaxDilation)) return J;
+  F *= std::pow(kSeparatedMaxDilation / J, 1.0 / D);
+  return kSeparatedMaxDilation;
+}
 
 /// Drucker-Prager: Jaumann-rotate sigma with the spin of L, add the elastic trial increment and
 /// return to the cone, its apex or the tension cut-off. For linear elasticity and a linear
@@ -226,12 +237,7 @@ void update_stress(const DruckerPrager& m, const Mat<D>& L, double dt, Mat<D>& F
   // Elastic trial.
   s3 += l.lambda * d3.trace() * Eigen::Matrix3d::Identity() + 2.0 * l.mu * d3;
   const double I1 = s3.trace();
-  if (I1 > 3.0 * m.tension_cutoff) {
-    // Being pulled apart: the volume stops growing at kSeparatedMaxDilation (F scaled
-    // isotropically, so its shape is kept).
-    const double J = F.determinant();
-    if (J > kSeparatedMaxDilation) F *= std::pow(kSeparatedMaxDilation / J, 1.0 / D);
-  }
+  if (I1 > 3.0 * m.tension_cutoff) cap_separated_dilation<D>(F);  // being pulled apart
   const Eigen::Matrix3d dev = s3 - I1 / 3.0 * Eigen::Matrix3d::Identity();
   const double q = std::sqrt(0.5 * (dev.array() * dev.array()).sum());  // sqrt(J2)
   double alpha = m.alpha;
@@ -284,14 +290,7 @@ template <int D, Fluid M>
 void update_stress(const M& m, const Mat<D>& L, double dt, Mat<D>& F, Mat<D>& sigma,
                    PointState& /*state*/) {
   F = (Mat<D>::Identity() + dt * L) * F;
-  double J = F.determinant();
-  // Spray: above J = 1 the fluid is pressure-free (it cavitates rather than pull), and beyond
-  // kSeparatedMaxDilation it has come apart: its volume stops there (as Drucker-Prager's), so a
-  // drop thrown off a flow does not land with a huge volume to weight its viscous stress.
-  if (J > kSeparatedMaxDilation) {
-    F *= std::pow(kSeparatedMaxDilation / J, 1.0 / D);
-    J = kSeparatedMaxDilation;
-  }
+  const double J = cap_separated_dilation<D>(F);  // spray: see kSeparatedMaxDilation
   // The deviator of the rate of deformation in 3D terms (the missing directions have D = 0).
   const Mat<D> Dv = 0.5 * (L + L.transpose());
   const double third_trace = Dv.trace() / 3.0;
