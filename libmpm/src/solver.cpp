@@ -287,7 +287,7 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   // Along the last axis a row's S nodes are contiguous: their D S momentum (force) components
   // are updated as one vector, with the per-node weights repeated per component.
   static_assert(sizeof(Vec<3>) == 3 * sizeof(double), "grid vectors must be packed");
-  constexpr int R = 3 * S;
+  static constexpr int R = 3 * S;  // static: the lambda below uses it without a capture
   double w2[R], wx2[R], dw2[R];
   for (int c = 0; c < R; ++c) {
     w2[c] = w[2][c / 3];
