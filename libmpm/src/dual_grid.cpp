@@ -301,14 +301,8 @@ void Solver<D>::layer_update(double dt) {
       continue;
     }
     for (std::size_t n = 0; n < w.mass.size(); ++n) {
-      const double m = w.mass[n];
-      if (m > mass_threshold_) {
-        w.velocity[n] = w.momentum[n] / m;
-        w.velocity_new[n] = w.velocity[n] + dt * w.force[n] / m;
-      } else {
-        w.velocity[n].setZero();
-        w.velocity_new[n].setZero();
-      }
+      node_velocities<D>(w.mass[n], w.momentum[n], w.force[n], dt, mass_threshold_, w.velocity[n],
+                         w.velocity_new[n]);
     }
   }
 }

@@ -434,14 +434,8 @@ void Solver<D>::for_each_active_node(F&& f) {
 template <int D>
 void Solver<D>::update_grid(double dt) {
   for_each_active_node([&](std::size_t n) {
-    const double m = grid.mass[n];
-    if (m > mass_threshold_) {
-      grid.velocity[n] = grid.momentum[n] / m;
-      grid.velocity_new[n] = grid.velocity[n] + dt * grid.force[n] / m;
-    } else {
-      grid.velocity[n].setZero();
-      grid.velocity_new[n].setZero();
-    }
+    node_velocities<D>(grid.mass[n], grid.momentum[n], grid.force[n], dt, mass_threshold_,
+                       grid.velocity[n], grid.velocity_new[n]);
   });
   layer_update(dt);
 }
@@ -455,38 +449,31 @@ void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record) {
     Vec<D> impulse = Vec<D>::Zero();
     std::visit(
         [&](const auto& condition) {
-          for (const BlockRun& run : wall_node_runs_[w]) {
-            if (grid.block_active[static_cast<std::size_t>(run.block)] == 0) continue;
-            for (int k = run.begin; k < run.end; ++k) {
-              const int n = wall_nodes_[w][static_cast<std::size_t>(k)];
-              const double m = grid.mass[n];
-              if (m <= mass_threshold_) continue;
-              const Vec<D> before = velocity[n];
-              velocity[n] =
-                  constrain_velocity<D>(condition, wall.contact.separable, normal, before);
-              impulse += m * (velocity[n] - before);
-            }
-          }
+          for_each_in_active_blocks(wall_node_runs_[w], [&](std::size_t k) {
+            const int n = wall_nodes_[w][k];
+            const double m = grid.mass[n];
+            if (m <= mass_threshold_) return;
+            const Vec<D> before = velocity[n];
+            velocity[n] = constrain_velocity<D>(condition, wall.contact.separable, normal, before);
+            impulse += m * (velocity[n] - before);
+          });
           // A bonded wall is a symmetry plane of the velocity field: ghost nodes take the
           // mirror image of the node inside (normal component odd; tangential odd for sticky,
           // even otherwise), so wide kernels (B-spline, GIMP) see the wall where it is rather
           // than a wall smeared over the ghost layer.
-          for (const BlockRun& run : wall_ghost_runs_[w]) {
-            if (grid.block_active[static_cast<std::size_t>(run.block)] == 0) continue;
-            for (int k = run.begin; k < run.end; ++k) {
-              const auto& [ghost, mirror] = wall_ghosts_[w][static_cast<std::size_t>(k)];
-              const double m = grid.mass[ghost];
-              if (m <= mass_threshold_) continue;
-              const Vec<D> before = velocity[ghost];
-              const Vec<D>& inside = velocity[mirror];
-              if constexpr (std::is_same_v<std::decay_t<decltype(condition)>, Sticky>) {
-                velocity[ghost] = -inside;
-              } else {
-                velocity[ghost] = inside - 2.0 * inside.dot(normal) * normal;
-              }
-              impulse += m * (velocity[ghost] - before);
+          for_each_in_active_blocks(wall_ghost_runs_[w], [&](std::size_t k) {
+            const auto& [ghost, mirror] = wall_ghosts_[w][k];
+            const double m = grid.mass[ghost];
+            if (m <= mass_threshold_) return;
+            const Vec<D> before = velocity[ghost];
+            const Vec<D>& inside = velocity[mirror];
+            if constexpr (std::is_same_v<std::decay_t<decltype(condition)>, Sticky>) {
+              velocity[ghost] = -inside;
+            } else {
+              velocity[ghost] = inside - 2.0 * inside.dot(normal) * normal;
             }
-          }
+            impulse += m * (velocity[ghost] - before);
+          });
         },
         wall.contact.condition);
     if (record) wall_impulse_[w] += pad3<D>(impulse);

@@ -17,6 +17,20 @@ namespace mpm {
 /// kernel (B-spline, GIMP: 3 nodes) never leaves the grid and walls have nodes to mirror into.
 inline constexpr int kGhostLayers = 2;
 
+/// A node's velocities at the start of the step and after the forces: v = p / m and
+/// v_new = v + dt f / m above the mass threshold, zero below it (both grids' update).
+template <int D>
+void node_velocities(double m, const Vec<D>& momentum, const Vec<D>& force, double dt,
+                     double threshold, Vec<D>& velocity, Vec<D>& velocity_new) {
+  if (m > threshold) {
+    velocity = momentum / m;
+    velocity_new = velocity + dt * force / m;
+  } else {
+    velocity.setZero();
+    velocity_new.setZero();
+  }
+}
+
 template <int D>
 struct Grid {
   Vec<D> origin = Vec<D>::Zero();  ///< position of node (0,...,0)
@@ -80,7 +94,7 @@ struct Grid {
   std::vector<std::uint8_t> block_active;  ///< this step's flags
   std::vector<std::uint8_t> half_marked;   ///< this step's particles' half-blocks
   std::vector<int> active_blocks;          ///< this step's blocks, in index order
-  std::vector<int> previous_blocks;        ///< the step before's (what clear() must zero)
+  std::vector<int> previous_blocks;        ///< the step before's (clear_previous() zeroes them)
 
   /// Linear index of the block with per-axis indices b (last axis fastest, as nodes).
   [[nodiscard]] int block_index(const Index<D>& b) const {

@@ -195,6 +195,14 @@ class Solver final : public Simulation {
     int block, begin, end;
   };
   std::vector<std::vector<BlockRun>> wall_node_runs_, wall_ghost_runs_;
+  /// f(k) for each index k of the runs whose grid block is active this step.
+  template <class F>
+  void for_each_in_active_blocks(const std::vector<BlockRun>& runs, F&& f) const {
+    for (const BlockRun& run : runs) {
+      if (grid.block_active[static_cast<std::size_t>(run.block)] == 0) continue;
+      for (int k = run.begin; k < run.end; ++k) f(static_cast<std::size_t>(k));
+    }
+  }
   /// For bonded (non-separable) walls: (ghost node beyond the wall, its mirror image inside).
   std::vector<std::vector<std::pair<int, int>>> wall_ghosts_;
   std::vector<Eigen::Vector3d> wall_impulse_;  ///< box walls, then dual-wall parts
