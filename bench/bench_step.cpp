@@ -9,8 +9,9 @@
 //   BM_FloorStep3D/N/m   : an N x N x 10-cell block resting on a floor under gravity, so 10% of
 //                          the particles are within h of it; m = 0: standard wall on the box face
 //                          (grid line), 1: Blending mortar dual-grid floor, 2: one-way,
-//                          3: Enhanced velocity field. The floor of the dual-grid runs is a plane
-//                          0.3 h off the grid lines.
+//                          3: Enhanced velocity field, 4: mortar with Phi's multipliers merged
+//                          within h ("multiplier_radius": 1). The floor of the dual-grid runs is
+//                          a plane 0.3 h off the grid lines.
 //
 // BM_StandardStep3D also reports bytes_per_particle: the heap the solver holds after its first
 // step (particles, grid and step scratch; glibc's count of bytes in use, from before the solver
@@ -82,11 +83,12 @@ mpm::Scene floor_scene(int cells, int method) {
         {"name", "floor"},
         {"surface",
          {{"type", "mesh"}, {"file", floor_mesh(base, -h, 1.0 + h).string()}, {"remesh", true}}},
-        {"method", method == 1   ? "mortar"
-                   : method == 2 ? "one-way"
-                                 : "enhanced"},
+        {"method", method == 1 || method == 4 ? "mortar"
+                   : method == 2              ? "one-way"
+                                              : "enhanced"},
         {"condition", "slip"},
         {"separable", true}};
+    if (method == 4) wall["multiplier_radius"] = 1.0;
   }
   const nlohmann::json doc = {
       {"dimension", 3},
@@ -175,7 +177,7 @@ void BM_FloorStep3D(benchmark::State& state) {
       static_cast<double>(in_layer) / static_cast<double>(solver.particle_count());
 }
 BENCHMARK(BM_FloorStep3D)
-    ->ArgsProduct({{32}, {0, 1, 2, 3}})
+    ->ArgsProduct({{32}, {0, 1, 2, 3, 4}})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
 

@@ -43,6 +43,9 @@ struct SceneDump {
   int count = 0;
 } g_dump;
 
+/// --multiplier-radius: given to every Blending wall (mortar, one-way) of the cases run.
+double g_multiplier_radius = 0.0;
+
 }  // namespace
 
 void dump_scenes(const std::filesystem::path& dir, const std::string& prefix) {
@@ -51,8 +54,18 @@ void dump_scenes(const std::filesystem::path& dir, const std::string& prefix) {
   g_dump.count = 0;
 }
 
-Run run_scene_doc(const json& doc, const std::string& label, const Observer& observe,
+void merge_multipliers(double radius) { g_multiplier_radius = radius; }
+
+Run run_scene_doc(const json& case_doc, const std::string& label, const Observer& observe,
                   const std::function<void(Simulation&)>& start, std::int64_t max_steps) {
+  json doc = case_doc;
+  if (g_multiplier_radius > 0.0 && doc.contains("walls")) {
+    for (json& wall : doc["walls"]) {
+      const std::string method = wall.value("method", "");
+      if (method == "mortar" || method == "one-way")
+        wall["multiplier_radius"] = g_multiplier_radius;
+    }
+  }
   Run r;
   const auto clock_start = std::chrono::steady_clock::now();
   if (!g_dump.dir.empty()) {

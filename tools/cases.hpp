@@ -61,6 +61,9 @@ Run run_scene_doc(const nlohmann::json& doc, const std::string& label, const Obs
 /// From now on run_scene_doc writes every scene it runs to DIR/<prefix>_<n>.json (empty dir:
 /// stop writing). For `mpm verify --scenes`.
 void dump_scenes(const std::filesystem::path& dir, const std::string& prefix);
+/// Gives every Blending wall (mortar, one-way) of the cases run "multiplier_radius": radius
+/// (0: the scenes as the cases write them). Set by verify_command.
+void merge_multipliers(double radius);
 
 nlohmann::json vec(std::initializer_list<double> v);
 /// A wall condition: "friction" with mu > 0, else "slip".

@@ -89,6 +89,11 @@ int main(int argc, char** argv) {
   verify->add_option("--json", verify_args.json_file, "Write the table as JSON");
   verify->add_option("--scenes", verify_args.scene_dir,
                      "Write every scene run to DIR as JSON (rerun one with mpm run)");
+  verify
+      ->add_option("--multiplier-radius", verify_args.multiplier_radius,
+                   "Blending walls merge Phi's multipliers within this many cell spacings "
+                   "(the scene key multiplier_radius; default 0: one per Phi node)")
+      ->check(CLI::Range(0.0, 8.0));
   verify->add_option("--data", verify_args.data_dir, "Folder of the case files")
       ->check(CLI::ExistingDirectory);
   add_threads(verify);

@@ -23,6 +23,7 @@ using nlohmann::json;
 
 int verify_command(const VerifyArgs& args) {
   std::vector<Check> checks;
+  merge_multipliers(args.multiplier_radius);
   if (!args.scene_dir.empty()) {
     std::error_code ec;
     std::filesystem::create_directories(args.scene_dir, ec);

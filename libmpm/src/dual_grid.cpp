@@ -25,6 +25,72 @@
 
 namespace mpm {
 
+namespace {
+
+// The multiplier space of a Phi coupling, coarsened (DESIGN.md section 4: facets finer than h
+// over-constrain the interface): multipliers are merged into groups whose basis is the sum of
+// their P1 hats, which keeps the partition of unity over Phi (so momentum stays exact and
+// uniform motion passes). Greedy over the multipliers in node order: an unassigned multiplier
+// seeds a group, which takes the unassigned multipliers reachable from it along Phi's facet
+// edges that lie within `radius` of it. It follows the surface (a thin wall's two faces, or two
+// parts, never share a group unless a facet joins them) and the mesh alone (the same groups
+// however the scene is turned). Returns the group of each multiplier; radius 0: one each.
+template <int D>
+std::vector<int> aggregate_multipliers(const DualWall<D>& w, const std::vector<int>& node,
+                                       double radius) {
+  const auto k = node.size();
+  std::vector<int> group(k);
+  if (!(radius > 0.0)) {
+    for (std::size_t mu = 0; mu < k; ++mu) group[mu] = static_cast<int>(mu);
+    return group;
+  }
+  std::vector<int> mu_of(w.position.size(), -1);
+  for (std::size_t mu = 0; mu < k; ++mu)
+    mu_of[static_cast<std::size_t>(node[mu])] = static_cast<int>(mu);
+  // Phi's facet edges: the top nodes of a cell (its last D columns) that are multiplier nodes.
+  std::vector<std::vector<int>> adjacent(k);
+  const Eigen::Index top = w.layer->cells.cols() - (D == 1 ? 1 : D);
+  for (Eigen::Index cell = 0; cell < w.layer->cells.rows(); ++cell) {
+    for (Eigen::Index a = top; a < w.layer->cells.cols(); ++a) {
+      const int ma = mu_of[static_cast<std::size_t>(w.layer->cells(cell, a))];
+      if (ma < 0) continue;
+      for (Eigen::Index b = a + 1; b < w.layer->cells.cols(); ++b) {
+        const int mb = mu_of[static_cast<std::size_t>(w.layer->cells(cell, b))];
+        if (mb < 0) continue;
+        adjacent[static_cast<std::size_t>(ma)].push_back(mb);
+        adjacent[static_cast<std::size_t>(mb)].push_back(ma);
+      }
+    }
+  }
+  // A multiplier at the radius (a polyline cut into segments of h, radius h) is in: the margin
+  // keeps round-off from deciding it differently for a turned scene.
+  const double reach = radius * (1.0 + 1e-9);
+  std::fill(group.begin(), group.end(), -1);
+  int groups = 0;
+  std::vector<int> queue;
+  for (std::size_t seed = 0; seed < k; ++seed) {
+    if (group[seed] >= 0) continue;
+    const Vec<D>& centre = w.position[static_cast<std::size_t>(node[seed])];
+    group[seed] = groups;
+    queue.assign(1, static_cast<int>(seed));
+    for (std::size_t q = 0; q < queue.size(); ++q) {
+      for (const int next : adjacent[static_cast<std::size_t>(queue[q])]) {
+        const auto n = static_cast<std::size_t>(next);
+        if (group[n] >= 0 ||
+            (w.position[static_cast<std::size_t>(node[n])] - centre).norm() > reach) {
+          continue;
+        }
+        group[n] = groups;
+        queue.push_back(next);
+      }
+    }
+    ++groups;
+  }
+  return group;
+}
+
+}  // namespace
+
 template <int D>
 std::vector<std::string> Solver<D>::wall_names() const {
   std::vector<std::string> names;
@@ -98,10 +164,26 @@ void Solver<D>::setup_dual_walls() {
         Eigen::Vector3d::Zero());
 
     const mpmgeom::Coupling& c = spec.package->interface_coupling;
-    w.grid_coupling = c.grid;
-    w.boundary_coupling = c.boundary;
-    w.multiplier_integral = c.multiplier_integral;
-    w.multiplier_node = c.multiplier_node;
+    const double radius = spec.multiplier_radius * scene_.spacing;
+    const std::vector<int> group = aggregate_multipliers<D>(w, c.multiplier_node, radius);
+    const int groups = group.empty() ? 0 : *std::max_element(group.begin(), group.end()) + 1;
+    std::vector<Eigen::Triplet<double>> entries;
+    for (std::size_t mu = 0; mu < group.size(); ++mu) {
+      entries.emplace_back(static_cast<int>(mu), group[mu], 1.0);
+    }
+    Eigen::SparseMatrix<double> P(static_cast<Eigen::Index>(group.size()), groups);
+    P.setFromTriplets(entries.begin(), entries.end());
+    w.grid_coupling = c.grid * P;
+    w.boundary_coupling = c.boundary * P;
+    w.multiplier_integral = P.transpose() * c.multiplier_integral;
+    w.multiplier_first.assign(static_cast<std::size_t>(groups) + 1, 0);
+    for (const int g : group) ++w.multiplier_first[static_cast<std::size_t>(g) + 1];
+    for (int g = 0; g < groups; ++g) w.multiplier_first[g + 1] += w.multiplier_first[g];
+    w.multiplier_nodes.resize(group.size());
+    std::vector<int> fill(w.multiplier_first.begin(), w.multiplier_first.end() - 1);
+    for (std::size_t mu = 0; mu < group.size(); ++mu) {
+      w.multiplier_nodes[static_cast<std::size_t>(fill[group[mu]]++)] = c.multiplier_node[mu];
+    }
 
     // The smallest cell extent (column height or wall edge) limits the stable step.
     double smallest = std::numeric_limits<double>::infinity();
@@ -401,8 +483,12 @@ void Solver<D>::layer_couple(bool remapped) {
         return row;
       };
       std::vector<Eigen::Triplet<double>> ga, ba;
-      for (int mu = 0; mu < static_cast<int>(w.multiplier_node.size()); ++mu) {
-        if (w.mass[w.multiplier_node[mu]] <= coupling_threshold_) continue;
+      for (int mu = 0; mu + 1 < static_cast<int>(w.multiplier_first.size()); ++mu) {
+        bool carried = false;  // a Phi node of the multiplier carries mass
+        for (int j = w.multiplier_first[mu]; j < w.multiplier_first[mu + 1] && !carried; ++j) {
+          carried = w.mass[w.multiplier_nodes[j]] > coupling_threshold_;
+        }
+        if (!carried) continue;
         double grid_sum = 0.0, boundary_sum = 0.0;
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
           if (grid.mass[it.row()] > coupling_threshold_) grid_sum += it.value();

@@ -90,6 +90,17 @@ json contact_json(double mu) {
   return c;
 }
 
+/// A dual-grid wall's method: a scene method name, or "mortar_coarse": mortar with Phi's
+/// multipliers merged within one cell spacing along the surface ("multiplier_radius": 1).
+void set_method(json& wall, const std::string& method) {
+  if (method == "mortar_coarse") {
+    wall["method"] = "mortar";
+    wall["multiplier_radius"] = 1.0;
+  } else {
+    wall["method"] = method;
+  }
+}
+
 json dual_point_wall(double x, const std::string& method, double thickness, int layers) {
   json wall = contact_json(0.0);
   wall["name"] = "wall";
@@ -452,7 +463,7 @@ FreeFlight2D free_flight_2d(const std::string& method, const std::string& transf
   json wall = contact_json(0.0);
   wall["name"] = "wall";
   wall["surface"] = {{"type", "polyline"}, {"points", polyline_json(origin, along, -0.5, 0.8, h)}};
-  wall["method"] = method;
+  set_method(wall, method);
   wall["thickness"] = 3.0 * h;
   wall["layers"] = 3;
   json scheme = {{"update", "musl"}, {"transfer", transfer}, {"mass_threshold", 0.0}};
@@ -535,6 +546,11 @@ TEST(BlendingFreeFlight, MortarConservesMassAndMomentum2D) {
   expect_conserving_free_flight_2d("mortar");
 }
 
+// Merged multipliers keep the partition of unity over Phi, so the impulses stay equal and opposite.
+TEST(BlendingFreeFlight, MortarWithMergedMultipliersConservesMassAndMomentum2D) {
+  expect_conserving_free_flight_2d("mortar_coarse");
+}
+
 // Enhanced: the cross mass keeps the lumped rows' sums (the uniform mode), so the superposed
 // field carries exactly the particles' momentum across the layer and out through Phi.
 TEST(EnhancedFreeFlight, ConservesMassAndMomentum1D) {
@@ -565,7 +581,7 @@ TEST_P(LoneParticle, StiffParticleAgainstWallNeverGainsEnergy) {
   json wall = contact_json(0.0);
   wall["name"] = "wall";
   wall["surface"] = {{"type", "polyline"}, {"points", polyline_json(origin, along, -0.2, 1.2, h)}};
-  wall["method"] = GetParam();
+  set_method(wall, GetParam());
   json doc = {
       {"dimension", 2},
       {"grid", {{"min", vec_json(lo)}, {"max", vec_json(hi)}, {"spacing", h}}},
@@ -605,7 +621,8 @@ TEST_P(LoneParticle, StiffParticleAgainstWallNeverGainsEnergy) {
   EXPECT_GE(min_distance, -kBehindTolerance);
 }
 
-INSTANTIATE_TEST_SUITE_P(Method, LoneParticle, ::testing::Values("mortar", "enhanced"),
+INSTANTIATE_TEST_SUITE_P(Method, LoneParticle,
+                         ::testing::Values("mortar", "mortar_coarse", "enhanced"),
                          [](const auto& param_info) { return std::string(param_info.param); });
 
 TEST(BlendingFreeFlight, OneWayDoesNotConserveMomentum1D) {
@@ -678,7 +695,7 @@ json incline_wall(double mu, json surface, const std::string& method) {
   json wall = contact_json(mu);
   wall["name"] = "incline";
   wall["surface"] = std::move(surface);
-  wall["method"] = method;
+  set_method(wall, method);
   return wall;
 }
 
@@ -952,9 +969,11 @@ TEST_P(BlendingIncline, AngleInvariance3D) {
   std::printf("took %.2f s\n", seconds_since(start));
 }
 
-// Sweeps in both dual-grid forms: Blending (mortar) and Enhanced, the same tolerances.
+// Sweeps in both dual-grid forms: Blending (mortar, with one multiplier per Phi node and with
+// them merged within h) and Enhanced, the same tolerances.
 INSTANTIATE_TEST_SUITE_P(MethodAndFriction, BlendingIncline,
-                         ::testing::Combine(::testing::Values("mortar", "enhanced"),
+                         ::testing::Combine(::testing::Values("mortar", "mortar_coarse",
+                                                              "enhanced"),
                                             ::testing::Values(0.0, 0.3)),
                          [](const auto& p) {
                            return std::string(std::get<0>(p.param)) +

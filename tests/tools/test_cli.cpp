@@ -288,6 +288,18 @@ json scene_2d_dual_floor() {
   return scene;
 }
 
+TEST_F(CommandLine, RejectsMultiplierRadiusOutOfRangeOrOnEnhancedWall) {
+  // Negative or huge radii are typos; Enhanced has no Phi multipliers to merge.
+  json scene = scene_2d_dual_floor();
+  scene["walls"][0]["multiplier_radius"] = -1.0;
+  write_scene(scene);
+  expect_rejected("/walls/0/multiplier_radius", {"[0, 8]", "-1"});
+  scene["walls"][0]["multiplier_radius"] = 1.0;
+  scene["walls"][0]["method"] = "enhanced";
+  write_scene(scene);
+  expect_rejected("/walls/0/multiplier_radius", {"mortar or one-way"});
+}
+
 TEST_F(CommandLine, RejectsConditionForUnknownPart) {
   // A misspelt part would leave the part it meant with the wall's friction.
   json scene = scene_2d_dual_floor();

@@ -112,7 +112,10 @@ struct DualWall {
   Eigen::SparseMatrix<double> grid_coupling;
   Eigen::SparseMatrix<double> boundary_coupling;
   Eigen::VectorXd multiplier_integral;
-  std::vector<int> multiplier_node;
+  /// The Phi nodes of multiplier mu: multiplier_nodes[multiplier_first[mu] ..
+  /// multiplier_first[mu + 1]) (one, its own node, unless the wall's "multiplier_radius"
+  /// aggregates them: aggregate_multipliers()).
+  std::vector<int> multiplier_first, multiplier_nodes;
   std::vector<int> active_multipliers;  ///< this step's multipliers that constrain something
   /// Kept rows (compacted: row k is node grid_rows[k] / layer_rows[k]) and rescaled columns, so
   /// the per-step work scales with the interface, not with the whole grid.

@@ -87,6 +87,9 @@ struct DualWallSpec {
     return part_condition[static_cast<std::size_t>(part)];
   }
   CouplingMethod method = CouplingMethod::mortar;
+  /// Blending walls: Phi's multipliers within this many cell spacings of each other along the
+  /// surface are merged into one (0: one per Phi node, as the coupling is built).
+  double multiplier_radius = 0.0;
   /// Layer, coupling matrices and cell flags, built while the scene is read (from a point in
   /// 1D, a polyline in 2D, a mesh or a package from `mpm prep` in 3D).
   std::shared_ptr<const BoundaryPackage> package;
