@@ -429,15 +429,34 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
 // is of (a checkpoint saves it). False, with the fault set, if it cannot be factorised.
 template <int D>
 bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar) {
-  const Eigen::SparseMatrix<double> gt = w.grid_active.transpose();
-  const Eigen::SparseMatrix<double> scaled = w.inv_grid_mass.asDiagonal() * w.grid_active;
-  Eigen::SparseMatrix<double> S = gt * scaled;
-  if (mortar) {
-    const Eigen::SparseMatrix<double> bt = w.boundary_active.transpose();
-    const Eigen::SparseMatrix<double> layer = w.inv_layer_mass.asDiagonal() * w.boundary_active;
-    S += bt * layer;
+  // S = B^T B with B = [M_A^-1/2 R^A; M_alpha^-1/2 R^alpha; shift^1/2 I] (the second block for
+  // mortar only): one sparse product forms both terms and the shift.
+  const Eigen::Index ng = w.grid_active.rows(), k = w.grid_active.cols();
+  const Eigen::Index nl = mortar ? w.boundary_active.rows() : 0;
+  Eigen::VectorXi per_column(k);
+  for (Eigen::Index c = 0; c < k; ++c) {
+    per_column[c] = 1 + static_cast<int>(w.grid_active.outerIndexPtr()[c + 1] -
+                                         w.grid_active.outerIndexPtr()[c]);
+    if (mortar) {
+      per_column[c] += static_cast<int>(w.boundary_active.outerIndexPtr()[c + 1] -
+                                        w.boundary_active.outerIndexPtr()[c]);
+    }
   }
-  for (Eigen::Index i = 0; i < S.rows(); ++i) S.coeffRef(i, i) += w.schur_shift;
+  Eigen::SparseMatrix<double> B(ng + nl + k, k);
+  B.reserve(per_column);
+  const double root_shift = std::sqrt(w.schur_shift);
+  for (Eigen::Index c = 0; c < k; ++c) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_active, c); it; ++it) {
+      B.insert(it.row(), c) = it.value() * std::sqrt(w.inv_grid_mass[it.row()]);
+    }
+    if (mortar) {
+      for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_active, c); it; ++it) {
+        B.insert(ng + it.row(), c) = it.value() * std::sqrt(w.inv_layer_mass[it.row()]);
+      }
+    }
+    B.insert(ng + nl + c, c) = root_shift;
+  }
+  const Eigen::SparseMatrix<double> S = B.transpose() * B;
   bool refining = false;  // not reusable: layer_couple() decided to factorise
   if (!factorise_or_reuse(*w.schur, S, w.schur_base, w.pattern_hash, w.schur_factored, false,
                           refining, w.factorizations)) {
