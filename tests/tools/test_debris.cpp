@@ -144,39 +144,73 @@ TEST(MeshBodyLattice, TurnsAndMovesWithTheMesh) {
   EXPECT_EQ(scene(json::object(), "grid"), own);
 }
 
-TEST(DebrisWall, RotatedSceneGivesSamePeakForceRunoutAndImpulse) {
-  const json base = coarse();
-  // The shipped scene seeds its source on the lattice of the source mesh's own frame
-  // ("lattice": "body"), so turning the scene turns the particles with it; seeded afresh on the
-  // grid's lattice the turned source starts as another particle set, and at this spacing (the
-  // flow one or two cells deep at the barrier) that alone moved the peak force by 23-43%
-  // (docs/debris.md).
-  ASSERT_EQ(base["bodies"][0]["shape"].value("lattice", "grid"), "body");
+/// Runs `base` as it is and turned by each rotation: the bar, the same peak force and
+/// run-out within 5%, and the barrier's impulse, the momentum the flow brings it.
+void expect_turned_scenes_agree(const json& base, const std::vector<Eigen::Vector3d>& rotations) {
   const Outcome a = run(base, "aligned");
   // Mass is carried by the particles: exact.
   EXPECT_NEAR(a.mass_change, 0.0, 1e-12);
   // The flow reaches the barrier and loads it.
   EXPECT_GT(a.peak_force, 0.0);
-  const std::vector<Eigen::Vector3d> rotations = {{17.0, -23.0, 31.0}, {-29.0, 12.0, -47.0}};
   for (std::size_t k = 0; k < rotations.size(); ++k) {
     const Outcome b = run(turned(base, rotations[k]), "rotated" + std::to_string(k));
     EXPECT_NEAR(b.mass_change, 0.0, 1e-12);
-    // The bar: the same peak force and run-out within 5% (measured at this spacing:
-    // peak 1.042 and 1.011, run-out 0.997 and 1.001), and the barrier's impulse, the momentum
-    // the flow brings it (1.009, 1.017).
     EXPECT_NEAR(b.peak_force / a.peak_force, 1.0, 0.05) << "rotation " << k;
     EXPECT_NEAR(b.runout / a.runout, 1.0, 0.05) << "rotation " << k;
     EXPECT_NEAR(b.impulse / a.impulse, 1.0, 0.05) << "rotation " << k;
     const std::string tag = "rotation" + std::to_string(k) + "_";
-    RecordProperty(tag + "peak_force_ratio", std::to_string(b.peak_force / a.peak_force));
-    RecordProperty(tag + "impulse_ratio", std::to_string(b.impulse / a.impulse));
-    RecordProperty(tag + "runout_ratio", std::to_string(b.runout / a.runout));
+    ::testing::Test::RecordProperty(tag + "peak_force_ratio",
+                                    std::to_string(b.peak_force / a.peak_force));
+    ::testing::Test::RecordProperty(tag + "impulse_ratio", std::to_string(b.impulse / a.impulse));
+    ::testing::Test::RecordProperty(tag + "runout_ratio", std::to_string(b.runout / a.runout));
     std::printf(
         "rotated (%d) / aligned: peak force %.4f, impulse %.4f, run-out %.4f, retained volume "
         "%.3f\n",
         static_cast<int>(k), b.peak_force / a.peak_force, b.impulse / a.impulse,
         b.runout / a.runout, b.retained / a.retained);
   }
+}
+
+TEST(DebrisWall, RotatedSceneGivesSamePeakForceRunoutAndImpulse) {
+  const json base = coarse();
+  // The shipped scene seeds its source on the lattice of the source mesh's own frame
+  // ("lattice": "body"), so turning the scene turns the particles with it; seeded afresh on the
+  // grid's lattice the turned source starts as another particle set, and at this spacing (the
+  // flow one or two cells deep at the barrier) that alone moved the peak force by 23-43%
+  // (docs/debris.md). Measured at this spacing: peak 1.042 and 1.011, run-out 0.997 and 1.001,
+  // impulse 1.009 and 1.017.
+  ASSERT_EQ(base["bodies"][0]["shape"].value("lattice", "grid"), "body");
+  expect_turned_scenes_agree(base, {{17.0, -23.0, 31.0}, {-29.0, 12.0, -47.0}});
+}
+
+// Merged Phi multipliers ("multiplier_radius", docs/blending.md) are grouped along the mesh alone,
+// so the turned scene gets the same groups. Its run-out and barrier impulse agree as the
+// unmerged scene's do (measured: 0.999 and 1.013). Its raw peak force does not meet the 5% bar
+// at this spacing (measured 0.920, against 1.042 unmerged: the 0.01 s peak of a flow one or two
+// cells deep is a spike, docs/debris.md), which is one reason the option is not the default; the
+// ratio is recorded, and asserted only against gross failure (a quarter).
+TEST(DebrisWall, RotatedSceneWithMergedMultipliersKeepsRunoutAndImpulse) {
+  json base = coarse();
+  bool found = false;
+  for (auto& wall : base["walls"]) {
+    if (wall.value("name", "") != "slope") continue;
+    wall["multiplier_radius"] = 1.0;
+    found = true;
+  }
+  ASSERT_TRUE(found);
+  const Outcome a = run(base, "aligned_merged");
+  EXPECT_NEAR(a.mass_change, 0.0, 1e-12);
+  EXPECT_GT(a.peak_force, 0.0);
+  const Outcome b = run(turned(base, {17.0, -23.0, 31.0}), "rotated_merged");
+  EXPECT_NEAR(b.mass_change, 0.0, 1e-12);
+  EXPECT_NEAR(b.runout / a.runout, 1.0, 0.05);
+  EXPECT_NEAR(b.impulse / a.impulse, 1.0, 0.05);
+  EXPECT_NEAR(b.peak_force / a.peak_force, 1.0, 0.25);
+  RecordProperty("peak_force_ratio", std::to_string(b.peak_force / a.peak_force));
+  RecordProperty("impulse_ratio", std::to_string(b.impulse / a.impulse));
+  RecordProperty("runout_ratio", std::to_string(b.runout / a.runout));
+  std::printf("merged, rotated / aligned: peak force %.4f, impulse %.4f, run-out %.4f\n",
+              b.peak_force / a.peak_force, b.impulse / a.impulse, b.runout / a.runout);
 }
 
 }  // namespace
