@@ -33,8 +33,8 @@ namespace {
 // uniform motion passes). Greedy over the multipliers in node order: an unassigned multiplier
 // seeds a group, which takes the unassigned multipliers reachable from it along Phi's facet
 // edges that lie within `radius` of it. It follows the surface (a thin wall's two faces, or two
-// parts, never share a group unless a facet joins them) and the mesh alone (the same groups
-// however the scene is turned). Returns the group of each multiplier; radius 0: one each.
+// separate surfaces, never share a group unless a facet joins them) and the mesh alone (the same
+// groups however the scene is turned). Returns the group of each multiplier; radius 0: one each.
 template <int D>
 std::vector<int> aggregate_multipliers(const DualWall<D>& w, const std::vector<int>& node,
                                        double radius) {
@@ -167,15 +167,21 @@ void Solver<D>::setup_dual_walls() {
     const double radius = spec.multiplier_radius * scene_.spacing;
     const std::vector<int> group = aggregate_multipliers<D>(w, c.multiplier_node, radius);
     const int groups = group.empty() ? 0 : *std::max_element(group.begin(), group.end()) + 1;
-    std::vector<Eigen::Triplet<double>> entries;
-    for (std::size_t mu = 0; mu < group.size(); ++mu) {
-      entries.emplace_back(static_cast<int>(mu), group[mu], 1.0);
+    if (groups == static_cast<int>(group.size())) {  // one multiplier per Phi node
+      w.grid_coupling = c.grid;
+      w.boundary_coupling = c.boundary;
+      w.multiplier_integral = c.multiplier_integral;
+    } else {  // each group's columns summed
+      std::vector<Eigen::Triplet<double>> entries;
+      for (std::size_t mu = 0; mu < group.size(); ++mu) {
+        entries.emplace_back(static_cast<int>(mu), group[mu], 1.0);
+      }
+      Eigen::SparseMatrix<double> P(static_cast<Eigen::Index>(group.size()), groups);
+      P.setFromTriplets(entries.begin(), entries.end());
+      w.grid_coupling = c.grid * P;
+      w.boundary_coupling = c.boundary * P;
+      w.multiplier_integral = P.transpose() * c.multiplier_integral;
     }
-    Eigen::SparseMatrix<double> P(static_cast<Eigen::Index>(group.size()), groups);
-    P.setFromTriplets(entries.begin(), entries.end());
-    w.grid_coupling = c.grid * P;
-    w.boundary_coupling = c.boundary * P;
-    w.multiplier_integral = P.transpose() * c.multiplier_integral;
     w.multiplier_first.assign(static_cast<std::size_t>(groups) + 1, 0);
     for (const int g : group) ++w.multiplier_first[static_cast<std::size_t>(g) + 1];
     for (int g = 0; g < groups; ++g) w.multiplier_first[g + 1] += w.multiplier_first[g];

@@ -6,8 +6,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
-#include <cstdio>
-#include <cstdlib>
 
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
