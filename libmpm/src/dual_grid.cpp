@@ -92,6 +92,26 @@ std::vector<int> aggregate_multipliers(const DualWall<D>& w, const std::vector<i
 }  // namespace
 
 template <int D>
+std::vector<CouplingWork> Solver<D>::coupling_work() const {
+  std::vector<CouplingWork> work;
+  for (const DualWall<D>& w : dual_) {
+    CouplingWork c;
+    c.wall = w.spec->name;
+    c.method = w.enhanced                                  ? "enhanced"
+               : w.spec->method == CouplingMethod::one_way ? "one-way"
+                                                           : "mortar";
+    const mpmgeom::Coupling& surface =
+        w.enhanced ? w.spec->package->wall_coupling : w.spec->package->interface_coupling;
+    c.surface_nodes = surface.multiplier_node.size();
+    c.multipliers = w.enhanced ? c.surface_nodes : w.multiplier_first.size() - 1;
+    c.factorizations = w.factorizations + w.enh.factorizations;
+    c.refinement_passes = w.refinements + w.enh.refinements;
+    work.push_back(std::move(c));
+  }
+  return work;
+}
+
+template <int D>
 std::vector<std::string> Solver<D>::wall_names() const {
   std::vector<std::string> names;
   for (const auto& wall : scene_.walls) names.push_back(wall.name);
@@ -836,6 +856,7 @@ void Solver<D>::layer_gather_gradient() {
   template void Solver<D>::layer_update(double);                                  \
   template void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*, bool); \
   template void Solver<D>::layer_couple(bool);                                    \
+  template std::vector<CouplingWork> Solver<D>::coupling_work() const;            \
   template bool Solver<D>::factorise_schur(DualWall<D>&, bool);                   \
   template void Solver<D>::layer_gather(double);                                  \
   template void Solver<D>::layer_remap();                                         \

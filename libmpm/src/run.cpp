@@ -593,6 +593,15 @@ int run_scene(const Scene& scene, const RunOptions& options) {
                                   {"impulse", j.norm()},
                                   {"impulse_vector", {j.x(), j.y(), j.z()}}};
   }
+  // The dual-grid couplings' size and work (since this process started: a resumed run counts
+  // from its resume), to see what a wall costs and what "multiplier_radius" saves.
+  for (const mpm::CouplingWork& c : sim->coupling_work()) {
+    summary["coupling"][c.wall] = {{"method", c.method},
+                                   {"surface_nodes", c.surface_nodes},
+                                   {"multipliers", c.multipliers},
+                                   {"factorizations", c.factorizations},
+                                   {"refinement_passes", c.refinement_passes}};
+  }
   summary["flow"] = flow_summary(scene, first, sim->frame(t, step));
   try {
     write_json_atomically(out / "summary.json", summary);

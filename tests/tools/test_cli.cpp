@@ -288,6 +288,30 @@ json scene_2d_dual_floor() {
   return scene;
 }
 
+TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
+  // A block resting in the dual floor's layer: its coupling is assembled and solved every step.
+  json scene = scene_2d_dual_floor();
+  scene["bodies"][0]["shape"] = {{"type", "box"}, {"min", {0.3, 0.12}}, {"max", {0.7, 0.4}}};
+  write_scene(scene);
+  RunResult r = run_scene({"-j", "1"});
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  json coupling = json::parse(read_text(out_dir_ / "summary.json")).at("coupling").at("floor");
+  EXPECT_EQ(coupling.at("method"), "mortar");
+  // The floor, 1 m in segments of h = 0.1: 11 Phi nodes, one multiplier each.
+  EXPECT_EQ(coupling.at("surface_nodes").get<int>(), 11);
+  EXPECT_EQ(coupling.at("multipliers").get<int>(), 11);
+  EXPECT_GE(coupling.at("factorizations").get<int>(), 1);
+  EXPECT_GE(coupling.at("refinement_passes").get<int>(), 0);
+  // Merged within h: the greedy pass from the floor's end node makes pairs, 11 -> 6.
+  scene["walls"][0]["multiplier_radius"] = 1.0;
+  write_scene(scene);
+  r = run_scene({"-j", "1", "--overwrite"});
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  coupling = json::parse(read_text(out_dir_ / "summary.json")).at("coupling").at("floor");
+  EXPECT_EQ(coupling.at("surface_nodes").get<int>(), 11);
+  EXPECT_EQ(coupling.at("multipliers").get<int>(), 6);
+}
+
 TEST_F(CommandLine, RejectsMultiplierRadiusOutOfRangeOrOnEnhancedWall) {
   // Negative or huge radii are typos; Enhanced has no Phi multipliers to merge.
   json scene = scene_2d_dual_floor();

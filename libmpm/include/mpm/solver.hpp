@@ -53,6 +53,18 @@ struct PhaseTimes {
   }
 };
 
+/// The work of one dual-grid wall's coupling since the solver was made (not restored from a
+/// checkpoint): what the Phi (Blending) or Gamma (Enhanced) system is made of and how often it
+/// was factorised or solved by refinement against an earlier factorisation.
+struct CouplingWork {
+  std::string wall;
+  std::string method;
+  std::size_t surface_nodes = 0;  ///< multiplier nodes of the surface (Phi or Gamma)
+  std::size_t multipliers = 0;    ///< after merging ("multiplier_radius"; Blending only)
+  std::size_t factorizations = 0;
+  std::size_t refinement_passes = 0;
+};
+
 /// Dimension-independent face of a solver, used by the run loop and the command line.
 class Simulation {
  public:
@@ -83,6 +95,8 @@ class Simulation {
   virtual void restore_state(const Checkpoint& checkpoint) = 0;
   /// Time per phase of step() since construction (not restored from a checkpoint).
   [[nodiscard]] virtual const PhaseTimes& phase_times() const = 0;
+  /// One entry per dual-grid wall (Blending or Enhanced; sdf walls have no coupling).
+  [[nodiscard]] virtual std::vector<CouplingWork> coupling_work() const = 0;
 };
 
 std::unique_ptr<Simulation> make_simulation(const Scene& scene);
@@ -110,6 +124,7 @@ class Solver final : public Simulation {
   void save_state(Checkpoint& checkpoint) const override;
   void restore_state(const Checkpoint& checkpoint) override;
   [[nodiscard]] const PhaseTimes& phase_times() const override { return times_; }
+  [[nodiscard]] std::vector<CouplingWork> coupling_work() const override;
 
   // The phases of a step, public so tests can check each one.
   void particles_to_grid();
