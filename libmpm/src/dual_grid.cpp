@@ -468,16 +468,20 @@ bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar) {
                                         w.boundary_active.outerIndexPtr()[c]);
     }
   }
+  // Each row's M^-1/2 once (a row is in many columns).
+  const Eigen::VectorXd root_grid = w.inv_grid_mass.cwiseSqrt();
+  const Eigen::VectorXd root_layer =
+      mortar ? Eigen::VectorXd(w.inv_layer_mass.cwiseSqrt()) : Eigen::VectorXd();
   Eigen::SparseMatrix<double> B(ng + nl + k, k);
   B.reserve(per_column);
   const double root_shift = std::sqrt(w.schur_shift);
   for (Eigen::Index c = 0; c < k; ++c) {
     for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_active, c); it; ++it) {
-      B.insert(it.row(), c) = it.value() * std::sqrt(w.inv_grid_mass[it.row()]);
+      B.insert(it.row(), c) = it.value() * root_grid[it.row()];
     }
     if (mortar) {
       for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_active, c); it; ++it) {
-        B.insert(ng + it.row(), c) = it.value() * std::sqrt(w.inv_layer_mass[it.row()]);
+        B.insert(ng + it.row(), c) = it.value() * root_layer[it.row()];
       }
     }
     B.insert(ng + nl + c, c) = root_shift;
