@@ -89,6 +89,29 @@ std::vector<int> aggregate_multipliers(const DualWall<D>& w, const std::vector<i
   return group;
 }
 
+/// A package coupling's rows (standard-grid nodes in the package's lexicographic order, last
+/// axis fastest: mpmgeom::GridSpec::linear_index) renumbered to the grid's blocked node index.
+/// The scene reader has checked that the package was made for this grid (same nodes, origin).
+template <int D>
+Eigen::SparseMatrix<double> on_grid(const Grid<D>& grid, const Eigen::SparseMatrix<double>& m) {
+  std::vector<Eigen::Triplet<double>> entries;
+  entries.reserve(static_cast<std::size_t>(m.nonZeros()));
+  for (int col = 0; col < m.outerSize(); ++col) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(m, col); it; ++it) {
+      auto row = static_cast<int>(it.row());
+      Index<D> i;
+      for (int d = D - 1; d >= 0; --d) {
+        i[d] = row % grid.nodes[d];
+        row /= grid.nodes[d];
+      }
+      entries.emplace_back(grid.linear(i), col, it.value());
+    }
+  }
+  Eigen::SparseMatrix<double> out(static_cast<Eigen::Index>(grid.size()), m.cols());
+  out.setFromTriplets(entries.begin(), entries.end());
+  return out;
+}
+
 }  // namespace
 
 template <int D>
@@ -155,6 +178,7 @@ void Solver<D>::setup_dual_walls() {
     w.enhanced = spec.method == CouplingMethod::enhanced;
     if (w.enhanced) {
       w.momentum_new.assign(n, Vec<D>::Zero());
+      w.enh.gamma_grid = on_grid(grid, spec.package->wall_coupling.grid);
       w.enh.a_row_of.assign(grid.size(), -1);
       w.enh.alpha_col_of.assign(n, -1);
     } else {
@@ -188,7 +212,7 @@ void Solver<D>::setup_dual_walls() {
     const std::vector<int> group = aggregate_multipliers<D>(w, c.multiplier_node, radius);
     const int groups = group.empty() ? 0 : *std::max_element(group.begin(), group.end()) + 1;
     if (groups == static_cast<int>(group.size())) {  // one multiplier per Phi node
-      w.grid_coupling = c.grid;
+      w.grid_coupling = on_grid(grid, c.grid);
       w.boundary_coupling = c.boundary;
       w.multiplier_integral = c.multiplier_integral;
     } else {  // each group's columns summed
@@ -198,7 +222,7 @@ void Solver<D>::setup_dual_walls() {
       }
       Eigen::SparseMatrix<double> P(static_cast<Eigen::Index>(group.size()), groups);
       P.setFromTriplets(entries.begin(), entries.end());
-      w.grid_coupling = c.grid * P;
+      w.grid_coupling = on_grid(grid, c.grid) * P;
       w.boundary_coupling = c.boundary * P;
       w.multiplier_integral = P.transpose() * c.multiplier_integral;
     }
@@ -610,7 +634,7 @@ void Solver<D>::layer_couple(bool remapped) {
     // Apply to the new velocities (and to the old ones, which FLIP differences against), or to
     // the remapped velocities of MUSL; all D components in one solve.
     using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
-    auto solve = [&](std::vector<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
+    auto solve = [&](NodeArray<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
       const auto ng = static_cast<Eigen::Index>(w.grid_rows.size());
       const auto nl = static_cast<Eigen::Index>(w.layer_rows.size());
       Block a(ng, D), b(nl, D);

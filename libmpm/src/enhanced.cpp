@@ -129,7 +129,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   }
   for (int mu = 0; mu < static_cast<int>(gamma.multiplier_node.size()); ++mu) {
     double active = 0.0;  // the whole column sums to integral S_mu (partition of unity)
-    for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
+    for (Sparse::InnerIterator it(e.gamma_grid, mu); it; ++it) {
       if (grid.mass[it.row()] > coupling_threshold_) active += it.value();
     }
     if (active >= (1.0 - 1e-9) * gamma.multiplier_integral[mu]) continue;
@@ -182,7 +182,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     // Separable: no multiplier until the material touches the wall at its node.
     if (w.spec->contact.separable && w.touch_gap[g] > 0.0) continue;
     double sum = 0.0;
-    for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
+    for (Sparse::InnerIterator it(e.gamma_grid, mu); it; ++it) {
       if (grid.mass[it.row()] > coupling_threshold_) sum += it.value();
     }
     if (sum <= 1e-12 * gamma.multiplier_integral[mu]) continue;
@@ -192,7 +192,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     e.part.push_back(w.wall_node_part[w.wall_index_of_node[g]]);
     integral.push_back(gamma.multiplier_integral[mu]);
     const double scale = gamma.multiplier_integral[mu] / sum;
-    for (Sparse::InnerIterator it(gamma.grid, mu); it; ++it) {
+    for (Sparse::InnerIterator it(e.gamma_grid, mu); it; ++it) {
       const int node = static_cast<int>(it.row());
       if (grid.mass[node] > coupling_threshold_)
         ga.emplace_back(row_of(node), col, scale * it.value());
@@ -238,7 +238,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
 // box walls already applied) and the boundary-grid momenta, the coupled velocities, with the
 // wall's multipliers when `constrained`. Impulses go to the wall's parts when `record`.
 template <int D>
-void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
+void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
                                const std::vector<Vec<D>>& alpha_momentum,
                                std::vector<Vec<D>>& valpha, bool constrained, bool record) {
   EnhancedState<D>& e = w.enh;
@@ -495,7 +495,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, std::vector<Vec<D>>& va,
 
 #define MPM_ENHANCED_MEMBERS(D)                                                                   \
   template void Solver<D>::enhanced_assemble(DualWall<D>&);                                       \
-  template void Solver<D>::enhanced_solve(DualWall<D>&, std::vector<Vec<D>>&,                     \
+  template void Solver<D>::enhanced_solve(DualWall<D>&, NodeArray<Vec<D>>&,                     \
                                           const std::vector<Vec<D>>&, std::vector<Vec<D>>&, bool, \
                                           bool);
 

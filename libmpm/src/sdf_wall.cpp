@@ -90,7 +90,9 @@ void Solver<D>::setup_sdf_wall(const DualWallSpec& spec) {
   std::vector<char> behind(grid.size(), 0);
   std::vector<Vec<D>> normals(grid.size());
   tbb::parallel_for(std::size_t{0}, grid.size(), [&](std::size_t n) {
-    const Vec<D> x = grid.origin + grid.h * grid.multi(static_cast<int>(n)).template cast<double>();
+    const Index<D> i = grid.multi(static_cast<int>(n));
+    if ((i.array() >= grid.nodes.array()).any()) return;  // padding of the last blocks
+    const Vec<D> x = grid.position(i);
     Vec<D> normal;
     const double phi = probe(x, normal);
     if (phi <= 0.0 && phi >= -reach) {
@@ -107,7 +109,7 @@ void Solver<D>::setup_sdf_wall(const DualWallSpec& spec) {
 }
 
 template <int D>
-void Solver<D>::constrain_sdf_walls(std::vector<Vec<D>>& velocity, bool record) {
+void Solver<D>::constrain_sdf_walls(NodeArray<Vec<D>>& velocity, bool record) {
   for (const SdfWall& wall : sdf_) {
     Vec<D> impulse = Vec<D>::Zero();
     std::visit(
@@ -129,7 +131,7 @@ void Solver<D>::constrain_sdf_walls(std::vector<Vec<D>>& velocity, bool record) 
 
 #define MPM_SDF_MEMBERS(D)                                      \
   template void Solver<D>::setup_sdf_wall(const DualWallSpec&); \
-  template void Solver<D>::constrain_sdf_walls(std::vector<Vec<D>>&, bool);
+  template void Solver<D>::constrain_sdf_walls(NodeArray<Vec<D>>&, bool);
 
 MPM_SDF_MEMBERS(1)
 MPM_SDF_MEMBERS(2)

@@ -77,6 +77,7 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
     std::vector<std::pair<int, int>> ghosts;
     for (int n = 0; n < static_cast<int>(grid.size()); ++n) {
       Index<D> i = grid.multi(n);
+      if ((i.array() >= grid.nodes.array()).any()) continue;  // padding of the last blocks
       if (i[a] < lo || i[a] > hi) continue;
       if (i[a] == wall_index || wall.contact.separable) {
         nodes.push_back(n);
@@ -284,8 +285,9 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   const auto& w = st.w;
   const auto& dw = st.dw;
   const auto& dx = st.dx;
-  // Along the last axis a row's S nodes are contiguous: their D S momentum (force) components
-  // are updated as one vector, with the per-node weights repeated per component.
+  // Along the last axis a row's S nodes are adjacent in memory unless the row crosses a grid
+  // block: then their D S momentum (force) components are updated as one vector, with the
+  // per-node weights repeated per component.
   static_assert(sizeof(Vec<3>) == 3 * sizeof(double), "grid vectors must be packed");
   static constexpr int R = 3 * S;  // static: the lambda below uses it without a capture
   double w2[R], wx2[R], dw2[R];
@@ -299,39 +301,58 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
     mv[a] = m * v[a];
     for (int b = 0; b < 3; ++b) mc[a][b] = m * C[a][b];
   }
-  // out[3k + a] += x_a u[3k + a] + y_a z[3k + a] over the row's S nodes (x, y repeated per node
-  // so that the update is one vector expression).
-  auto add_row = [](double* out, const double(&x)[3], const double* u, const double(&y)[3],
-                    const double* z) {
-    double xr[R], yr[R];
-    for (int c = 0; c < R; ++c) {
-      xr[c] = x[c % 3];
-      yr[c] = y[c % 3];
+  const int(&k_offset)[S] = st.offset[2];
+  // array[row + k_offset[k]][a] += x_a u[3k + a] + y_a z[3k + a] over the row's S nodes (x, y
+  // repeated per node so that the update is one vector expression when the row is contiguous).
+  auto rows = [&](auto contiguous) {
+    auto add_row = [&](NodeArray<Vec<3>>& array, int row, const double(&x)[3], const double* u,
+                       const double(&y)[3], const double* z) {
+      double xr[R], yr[R];
+      for (int c = 0; c < R; ++c) {
+        xr[c] = x[c % 3];
+        yr[c] = y[c % 3];
+      }
+      if constexpr (decltype(contiguous)::value) {
+        double* out = array[static_cast<std::size_t>(row + k_offset[0])].data();
+        for (int c = 0; c < R; ++c) out[c] += xr[c] * u[c] + yr[c] * z[c];
+      } else {
+        for (int k = 0; k < S; ++k) {
+          double* out = array[static_cast<std::size_t>(row + k_offset[k])].data();
+          for (int a = 0; a < 3; ++a) {
+            const int c = 3 * k + a;
+            out[a] += xr[c] * u[c] + yr[c] * z[c];
+          }
+        }
+      }
+    };
+    for (int i = 0; i < S; ++i) {
+      for (int j = 0; j < S; ++j) {
+        const double wij = w[0][i] * w[1][j];
+        const int row = st.offset[0][i] + st.offset[1][j];
+        double p[3], q[3];  // momentum = p w_k + q w_k dx_k
+        for (int a = 0; a < 3; ++a) {
+          p[a] = wij * (mv[a] + mc[a][0] * dx[0][i] + mc[a][1] * dx[1][j]);
+          q[a] = wij * mc[a][2];
+        }
+        add_row(grid.momentum, row, p, w2, q, wx2);
+        if (body_force == nullptr) continue;
+        const auto& mb = *body_force;
+        const auto& vs = *stress;
+        double r[3], t[3];  // force = r w_k + t dw_k
+        for (int a = 0; a < 3; ++a) {
+          r[a] = wij * mb[a] + vs[a][0] * dw[0][i] * w[1][j] + vs[a][1] * w[0][i] * dw[1][j];
+          t[a] = wij * vs[a][2];
+        }
+        add_row(grid.force, row, r, w2, t, dw2);
+        const double wm = wij * m;
+        for (int k = 0; k < S; ++k) grid.mass[static_cast<std::size_t>(row + k_offset[k])] += wm * w[2][k];
+      }
     }
-    for (int c = 0; c < R; ++c) out[c] += xr[c] * u[c] + yr[c] * z[c];
   };
-  for (int i = 0; i < S; ++i) {
-    for (int j = 0; j < S; ++j) {
-      const double wij = w[0][i] * w[1][j];
-      const int row = st.base_linear + i * grid.stride[0] + j * grid.stride[1];
-      double p[3], q[3];  // momentum = p w_k + q w_k dx_k
-      for (int a = 0; a < 3; ++a) {
-        p[a] = wij * (mv[a] + mc[a][0] * dx[0][i] + mc[a][1] * dx[1][j]);
-        q[a] = wij * mc[a][2];
-      }
-      add_row(grid.momentum[row].data(), p, w2, q, wx2);
-      if (body_force == nullptr) continue;
-      const auto& mb = *body_force;
-      const auto& vs = *stress;
-      double r[3], t[3];  // force = r w_k + t dw_k
-      for (int a = 0; a < 3; ++a) {
-        r[a] = wij * mb[a] + vs[a][0] * dw[0][i] * w[1][j] + vs[a][1] * w[0][i] * dw[1][j];
-        t[a] = wij * vs[a][2];
-      }
-      add_row(grid.force[row].data(), r, w2, t, dw2);
-      const double wm = wij * m;
-      for (int k = 0; k < S; ++k) grid.mass[row + k] += wm * w[2][k];
-    }
+  if (st.row_contiguous) {
+    rows(std::true_type{});
+  } else {
+    rows(std::false_type{});
   }
 }
 
@@ -419,6 +440,7 @@ void Solver<D>::particles_to_grid() {
   grid.finish_marking();
   tbb::parallel_for(std::size_t{0}, grid.previous_blocks.size(),
                     [&](std::size_t k) { grid.clear_previous(k); });
+  grid.release_idle();
   dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true); });
   layer_scatter(true);
   lap(&PhaseTimes::particles_to_grid);
@@ -441,7 +463,7 @@ void Solver<D>::update_grid(double dt) {
 }
 
 template <int D>
-void Solver<D>::constrain_walls(std::vector<Vec<D>>& velocity, bool record) {
+void Solver<D>::constrain_walls(NodeArray<Vec<D>>& velocity, bool record) {
   for (std::size_t w = 0; w < scene_.walls.size(); ++w) {
     const BoxWall& wall = scene_.walls[w];
     Vec<D> normal = Vec<D>::Zero();
@@ -526,17 +548,17 @@ enum SampleParts : unsigned { kIncrement = 1U, kGradient = 2U, kMoment = 4U };
 // stencils that touch an empty node, where the sums skip it.
 template <unsigned Parts, class Shape>
 bool sample_grid_factorised(const Grid<3>& grid, const Stencil<3, Shape>& st,
-                            const std::vector<Vec<3>>& v, const std::vector<Vec<3>>& v_old,
+                            const NodeArray<Vec<3>>& v, const NodeArray<Vec<3>>& v_old,
                             double threshold, GridSample<3>& s) {
   constexpr int S = Shape::support;
   constexpr bool kG = (Parts & kGradient) != 0, kM = (Parts & kMoment) != 0;
   constexpr bool kI = (Parts & kIncrement) != 0;
-  const int s0 = grid.stride[0], s1 = grid.stride[1];
+  const int(&k_offset)[S] = st.offset[2];
   bool full = true;
   for (int i = 0; i < S; ++i) {
     for (int j = 0; j < S; ++j) {
-      const double* m = grid.mass.data() + st.base_linear + i * s0 + j * s1;
-      for (int k = 0; k < S; ++k) full &= m[k] > threshold;
+      const double* m = grid.mass.data() + st.offset[0][i] + st.offset[1][j];
+      for (int k = 0; k < S; ++k) full &= m[k_offset[k]] > threshold;
     }
   }
   if (!full) return false;
@@ -557,17 +579,17 @@ bool sample_grid_factorised(const Grid<3>& grid, const Stencil<3, Shape>& st,
   for (int i = 0; i < S; ++i) {
     double jv[3] = {}, jinc[3] = {}, jdy[3] = {}, jdz[3] = {}, jmy[3] = {}, jmz[3] = {};
     for (int j = 0; j < S; ++j) {
-      const int row = st.base_linear + i * s0 + j * s1;
+      const int row = st.offset[0][i] + st.offset[1][j];
       double kv[3] = {}, kinc[3] = {}, kd[3] = {}, km[3] = {};
       for (int k = 0; k < S; ++k) {
-        const double* vn = v[row + k].data();
+        const double* vn = v[static_cast<std::size_t>(row + k_offset[k])].data();
         for (int a = 0; a < 3; ++a) {
           kv[a] += w[2][k] * vn[a];
           if constexpr (kG) kd[a] += dw[2][k] * vn[a];
           if constexpr (kM) km[a] += wx[2][k] * vn[a];
         }
         if constexpr (kI) {
-          const double* vo = v_old[row + k].data();
+          const double* vo = v_old[static_cast<std::size_t>(row + k_offset[k])].data();
           for (int a = 0; a < 3; ++a) kinc[a] += w[2][k] * (vn[a] - vo[a]);
         }
       }
@@ -619,7 +641,7 @@ bool sample_grid_factorised(const Grid<3>& grid, const Stencil<3, Shape>& st,
 
 template <unsigned Parts, int D, class Shape>
 GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
-                          const std::vector<Vec<D>>& v, const std::vector<Vec<D>>& v_old,
+                          const NodeArray<Vec<D>>& v, const NodeArray<Vec<D>>& v_old,
                           double threshold) {
   if constexpr (D == 3) {
     GridSample<3> s;

@@ -41,6 +41,7 @@ struct EnhancedState {
   Eigen::VectorXd alpha_mass;             ///< lumped m^alpha of the columns
   Eigen::SparseMatrix<double> cross;      ///< m^{A,alpha}: near rows x alpha columns
   Eigen::SparseMatrix<double> schur;      ///< K = M^alpha - C^T M_A^-1 C (alpha columns)
+  Eigen::SparseMatrix<double> gamma_grid;  ///< R^A on Gamma, all multipliers (grid node rows)
   Eigen::SparseMatrix<double> grid_r;     ///< R^A on Gamma: near rows x active multipliers
   Eigen::SparseMatrix<double> alpha_r;    ///< R^alpha on Gamma: alpha columns x multipliers
   Eigen::SparseMatrix<double> coupled_r;  ///< W = R^alpha - C^T M_A^-1 R^A

@@ -5,9 +5,12 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
+#include <type_traits>
 #include <vector>
 
+#include "mpm/node_array.hpp"
 #include "mpm/shape.hpp"
 #include "mpm/types.hpp"
 
@@ -31,49 +34,91 @@ void node_velocities(double m, const Vec<D>& momentum, const Vec<D>& force, doub
   }
 }
 
+/// The standard Cartesian grid (the A-grid), stored by blocks of kBlock^D nodes: a node's index
+/// is its block's index times kBlockNodes plus its place in the block (last axis fastest in
+/// both), so a block's nodes are one contiguous run of every array. The arrays span the scene's
+/// box in address space, but memory backs only the pages of blocks that have held particles
+/// (NodeArray); blocks idle for kReleaseAfter steps are handed back. A hillside's box is mostly
+/// air: its grid costs what the flow covers, not what the box holds.
 template <int D>
 struct Grid {
   Vec<D> origin = Vec<D>::Zero();  ///< position of node (0,...,0)
   double h = 1.0;                  ///< node spacing
   double inv_h = 1.0;
-  Index<D> nodes = Index<D>::Ones();   ///< nodes per axis
-  Index<D> stride = Index<D>::Ones();  ///< linear index = sum_d i_d * stride_d; last axis fastest
+  Index<D> nodes = Index<D>::Ones();  ///< nodes per axis (the box; storage is padded to blocks)
 
-  std::vector<double> mass;
-  std::vector<Vec<D>> momentum;
-  std::vector<Vec<D>> force;
-  std::vector<Vec<D>> velocity;      ///< v_I^n = p_I / m_I (before the force update)
-  std::vector<Vec<D>> velocity_new;  ///< v_I^{n+1} after forces and wall conditions
+  NodeArray<double> mass;
+  NodeArray<Vec<D>> momentum;
+  NodeArray<Vec<D>> force;
+  NodeArray<Vec<D>> velocity;      ///< v_I^n = p_I / m_I (before the force update)
+  NodeArray<Vec<D>> velocity_new;  ///< v_I^{n+1} after forces and wall conditions
+
+  static constexpr int kBlock = 4;
+  static constexpr int kBlockNodes = D == 1 ? 4 : D == 2 ? 16 : 64;  ///< kBlock^D
+  /// Steps a block stays idle before its pages may be returned (a flow that comes back soon
+  /// does not pay the page faults again).
+  static constexpr int kReleaseAfter = 32;
+  /// Bytes per node over the five arrays.
+  static constexpr std::size_t kNodeBytes = sizeof(double) + 4 * sizeof(Vec<D>);
 
   void resize(const Vec<D>& grid_origin, double spacing, const Index<D>& node_count) {
     origin = grid_origin;
     h = spacing;
     inv_h = 1.0 / spacing;
     nodes = node_count;
-    stride[D - 1] = 1;
-    for (int d = D - 2; d >= 0; --d) stride[d] = stride[d + 1] * nodes[d + 1];
-    const auto n = size();
-    mass.assign(n, 0.0);
-    momentum.assign(n, Vec<D>::Zero());
-    force.assign(n, Vec<D>::Zero());
-    velocity.assign(n, Vec<D>::Zero());
-    velocity_new.assign(n, Vec<D>::Zero());
     for (int d = 0; d < D; ++d) {
       blocks[d] = (nodes[d] + kBlock - 1) / kBlock;
       halves[d] = (nodes[d] + 1) / 2;
     }
-    block_active.assign(static_cast<std::size_t>(blocks.prod()), 0);
+    for (int d = D - 1, local = 1, block = kBlockNodes; d >= 0; --d) {
+      local_stride[d] = local;
+      block_stride[d] = block;
+      local *= kBlock;
+      block *= blocks[d];
+    }
+    const auto n = size();
+    mass.assign_zero(n);
+    momentum.assign_zero(n);
+    force.assign_zero(n);
+    velocity.assign_zero(n);
+    velocity_new.assign_zero(n);
+    const auto block_count = static_cast<std::size_t>(blocks.prod());
+    block_active.assign(block_count, 0);
     half_marked.assign(static_cast<std::size_t>(halves.prod()), 0);
+    last_active.assign(block_count, -(1 << 30));
+    resident.assign(block_count, 0);
+    resident_blocks = 0;
+    epoch = 0;
     active_blocks.clear();
     previous_blocks.clear();
   }
-  [[nodiscard]] std::size_t size() const { return static_cast<std::size_t>(nodes.prod()); }
-  [[nodiscard]] int linear(const Index<D>& i) const { return i.dot(stride); }
+  /// Node slots in storage: the box padded up to whole blocks. Slots past the box (some of
+  /// the last block along each axis) hold zeros and never carry mass.
+  [[nodiscard]] std::size_t size() const {
+    return static_cast<std::size_t>(blocks.prod()) * kBlockNodes;
+  }
+  /// Nodes in the box.
+  [[nodiscard]] std::size_t node_count() const { return static_cast<std::size_t>(nodes.prod()); }
+  /// Bytes the box would take stored densely.
+  [[nodiscard]] std::size_t box_bytes() const { return node_count() * kNodeBytes; }
+  /// What node index i_d along axis d adds to a node's index (indices are separable: the index
+  /// of node i is the sum over the axes).
+  [[nodiscard]] int axis_offset(int d, int i) const {
+    return (i / kBlock) * block_stride[d] + (i % kBlock) * local_stride[d];
+  }
+  [[nodiscard]] int linear(const Index<D>& i) const {
+    int n = 0;
+    for (int d = 0; d < D; ++d) n += axis_offset(d, i[d]);
+    return n;
+  }
   [[nodiscard]] Index<D> multi(int linear_index) const {
+    int block = linear_index / kBlockNodes;
+    int local = linear_index % kBlockNodes;
     Index<D> i;
-    for (int d = 0; d < D; ++d) {
-      i[d] = linear_index / stride[d];
-      linear_index -= i[d] * stride[d];
+    for (int d = D - 1; d >= 0; --d) {
+      i[d] = (block % blocks[d]) * kBlock + local % kBlock;
+      block /= blocks[d];
+      local /= kBlock;
     }
     return i;
   }
@@ -81,20 +126,24 @@ struct Grid {
     return origin + h * i.template cast<double>();
   }
 
-  // Activity by blocks of kBlock^D nodes. Each step marks the blocks within reach of a particle
-  // (the nodes within two of its cell: every kernel's stencil); clearing, the grid update and
-  // the MUSL remap then run over those blocks only, and every node outside them holds zeros.
-  // A debris flow covers a small part of its hillside's box: the rest costs nothing per step.
+  // Activity by blocks. Each step marks the blocks within reach of a particle (the nodes
+  // within two of its cell: every kernel's stencil); clearing, the grid update and the MUSL
+  // remap then run over those blocks only, and every node outside them holds zeros.
   // The particles mark half-blocks (2^D nodes: one store each); a block is active when a marked
   // half-block lies within reach: node i's particles reach nodes i-2..i+2, so the block of nodes
   // 4b..4b+3 is reached from the half-blocks 2b-1..2b+2.
-  static constexpr int kBlock = 4;
-  Index<D> blocks = Index<D>::Ones();      ///< blocks per axis
-  Index<D> halves = Index<D>::Ones();      ///< half-blocks per axis
-  std::vector<std::uint8_t> block_active;  ///< this step's flags
-  std::vector<std::uint8_t> half_marked;   ///< this step's particles' half-blocks
-  std::vector<int> active_blocks;          ///< this step's blocks, in index order
-  std::vector<int> previous_blocks;        ///< the step before's (clear_previous() zeroes them)
+  Index<D> blocks = Index<D>::Ones();        ///< blocks per axis
+  Index<D> halves = Index<D>::Ones();        ///< half-blocks per axis
+  Index<D> local_stride = Index<D>::Ones();  ///< within a block, last axis fastest
+  Index<D> block_stride = Index<D>::Ones();  ///< from block to block, last axis fastest
+  std::vector<std::uint8_t> block_active;    ///< this step's flags
+  std::vector<std::uint8_t> half_marked;     ///< this step's particles' half-blocks
+  std::vector<int> active_blocks;            ///< this step's blocks, in index order
+  std::vector<int> previous_blocks;          ///< the step before's (clear_previous() zeroes them)
+  std::vector<int> last_active;              ///< the last step (epoch) each block was active
+  std::vector<std::uint8_t> resident;        ///< may the block's pages hold memory?
+  std::size_t resident_blocks = 0;
+  int epoch = 0;  ///< steps marked so far
 
   /// Linear index of the block with per-axis indices b (last axis fastest, as nodes).
   [[nodiscard]] int block_index(const Index<D>& b) const {
@@ -103,15 +152,14 @@ struct Grid {
     return linear_block;
   }
   /// The block holding a node.
-  [[nodiscard]] int block_of(int node) const {
-    return block_index((multi(node).array() / kBlock).matrix());
-  }
+  [[nodiscard]] int block_of(int node) const { return node / kBlockNodes; }
   /// Starts a step's marking: the last step's blocks become the previous ones.
   void begin_marking() {
     for (const int b : active_blocks) block_active[static_cast<std::size_t>(b)] = 0;
     std::swap(previous_blocks, active_blocks);
     active_blocks.clear();
     std::fill(half_marked.begin(), half_marked.end(), std::uint8_t{0});
+    ++epoch;
   }
   /// Marks the half-block of the cell of x. Safe to call from several threads at once.
   void mark(const Vec<D>& x) {
@@ -148,42 +196,27 @@ struct Grid {
       for (int d = D - 1; d >= 0 && ++c[d] == halves[d]; --d) c[d] = 0;
     }
     for (std::size_t b = 0; b < block_active.size(); ++b) {
-      if (block_active[b] != 0) active_blocks.push_back(static_cast<int>(b));
+      if (block_active[b] == 0) continue;
+      active_blocks.push_back(static_cast<int>(b));
+      last_active[b] = epoch;
+      if (resident[b] == 0) {
+        resident[b] = 1;
+        ++resident_blocks;
+      }
     }
   }
-  /// Calls f(first, count) for each run of nodes of `block` contiguous in memory (along the
-  /// last axis).
+  /// Calls f(first, count) for each run of nodes of `block` contiguous in memory: one, the
+  /// whole block.
   template <class F>
   void for_each_run(int block, F&& f) const {
-    Index<D> b;
-    for (int d = D - 1; d >= 0; --d) {
-      b[d] = block % blocks[d];
-      block /= blocks[d];
-    }
-    Index<D> lo, hi;
-    for (int d = 0; d < D; ++d) {
-      lo[d] = b[d] * kBlock;
-      hi[d] = std::min(lo[d] + kBlock, nodes[d]);
-    }
-    const int count = hi[D - 1] - lo[D - 1];
-    Index<D> i = lo;
-    while (true) {
-      f(linear(i), count);
-      int d = D - 2;
-      while (d >= 0 && i[d] + 1 == hi[d]) {
-        i[d] = lo[d];
-        --d;
-      }
-      if (d < 0) break;
-      ++i[d];
-    }
+    f(block * kBlockNodes, kBlockNodes);
   }
-  /// Calls f(node) for every node of `block`.
+  /// Calls f(node) for every node slot of `block` (padding slots past the box included: they
+  /// have no mass).
   template <class F>
   void for_each_node(int block, F&& f) const {
-    for_each_run(block, [&](int first, int count) {
-      for (int n = first; n < first + count; ++n) f(static_cast<std::size_t>(n));
-    });
+    const auto first = static_cast<std::size_t>(block) * kBlockNodes;
+    for (std::size_t n = first; n < first + kBlockNodes; ++n) f(n);
   }
   /// Zeroes what the last step left in its block previous_blocks[k] for the particles-to-grid
   /// transfer: mass, momentum and force, and the velocities if this step does not have the
@@ -192,14 +225,77 @@ struct Grid {
   void clear_previous(std::size_t k) {
     const int b = previous_blocks[k];
     const bool stays = block_active[static_cast<std::size_t>(b)] != 0;
-    for_each_run(b, [&](int first, int count) {
-      std::fill_n(mass.begin() + first, count, 0.0);
-      std::fill_n(momentum.begin() + first, count, Vec<D>::Zero());
-      std::fill_n(force.begin() + first, count, Vec<D>::Zero());
-      if (stays) return;
-      std::fill_n(velocity.begin() + first, count, Vec<D>::Zero());
-      std::fill_n(velocity_new.begin() + first, count, Vec<D>::Zero());
-    });
+    const auto first = static_cast<std::size_t>(b) * kBlockNodes;
+    std::fill_n(mass.begin() + first, kBlockNodes, 0.0);
+    std::fill_n(momentum.begin() + first, kBlockNodes, Vec<D>::Zero());
+    std::fill_n(force.begin() + first, kBlockNodes, Vec<D>::Zero());
+    if (stays) return;
+    std::fill_n(velocity.begin() + first, kBlockNodes, Vec<D>::Zero());
+    std::fill_n(velocity_new.begin() + first, kBlockNodes, Vec<D>::Zero());
+  }
+  /// Every kReleaseAfter / 2 steps, returns to the system the pages of the arrays that hold
+  /// only blocks idle for kReleaseAfter steps or more (they are all zero: clear_previous()).
+  /// Serial, after the clearing; touches only blocks that may hold memory.
+  void release_idle() {
+    if (epoch % (kReleaseAfter / 2) != 0 || resident_blocks == 0) return;
+    auto idle = [&](std::size_t b) { return last_active[b] + kReleaseAfter <= epoch; };
+    const std::size_t page = PageBuffer::page_size();
+    const std::size_t count = resident.size();
+    auto release_in = [&](auto& array, std::size_t b) {
+      // The pages that overlap block b; a page is returned when every block it overlaps is idle.
+      using T = typename std::decay_t<decltype(array)>::value_type;
+      const std::size_t bytes = kBlockNodes * sizeof(T);
+      const std::size_t first_page = b * bytes / page, last_page = ((b + 1) * bytes - 1) / page;
+      bool all = true;
+      for (std::size_t p = first_page; p <= last_page; ++p) {
+        const std::size_t lo = p * page / bytes;
+        const std::size_t hi = std::min(count - 1, ((p + 1) * page - 1) / bytes);
+        bool free = true;
+        for (std::size_t c = lo; c <= hi && free; ++c) free = idle(c);
+        if (free) {
+          array.release_bytes(p * page, page);
+        } else {
+          all = false;
+        }
+      }
+      return all;
+    };
+    for (std::size_t b = 0; b < count; ++b) {
+      if (resident[b] == 0 || !idle(b)) continue;
+      bool all = release_in(mass, b);
+      all &= release_in(momentum, b);
+      all &= release_in(force, b);
+      all &= release_in(velocity, b);
+      all &= release_in(velocity_new, b);
+      if (all) {
+        resident[b] = 0;
+        --resident_blocks;
+      }
+    }
+  }
+  /// Bytes of the node arrays backed by memory: the pages that overlap a block that may hold
+  /// memory (what release_idle() has not returned).
+  [[nodiscard]] std::size_t committed_bytes() const {
+    const std::size_t page = PageBuffer::page_size();
+    std::size_t total = 0;
+    for (const std::size_t node_bytes : {sizeof(double), sizeof(Vec<D>), sizeof(Vec<D>),
+                                         sizeof(Vec<D>), sizeof(Vec<D>)}) {
+      const std::size_t bytes = kBlockNodes * node_bytes;
+      std::size_t pages = 0, next = 0;  // pages counted, and the first page not yet counted
+      for (std::size_t b = 0; b < resident.size(); ++b) {
+        if (resident[b] == 0) continue;
+        const std::size_t first = std::max(next, b * bytes / page);
+        const std::size_t last = ((b + 1) * bytes - 1) / page;
+        if (last >= first) pages += last - first + 1;
+        next = last + 1;
+      }
+      total += pages * page;
+    }
+    return total;
+  }
+  /// Bytes the active blocks' nodes need (what a block-sparse store could not do without).
+  [[nodiscard]] std::size_t active_bytes() const {
+    return active_blocks.size() * kBlockNodes * kNodeBytes;
   }
 };
 
@@ -208,10 +304,11 @@ template <int D, class Shape>
 struct Stencil {
   static constexpr int S = Shape::support;
   Index<D> base;
-  int base_linear = 0;
   double w[D][S];
-  double dw[D][S];  ///< already divided by h
-  double dx[D][S];  ///< x_I - x_p per axis
+  double dw[D][S];    ///< already divided by h
+  double dx[D][S];    ///< x_I - x_p per axis
+  int offset[D][S];   ///< node (i, j, k) is offset[0][i] + offset[1][j] + offset[2][k]
+  bool row_contiguous;  ///< are the nodes along the last axis adjacent in memory?
 
   Stencil(const Grid<D>& g, const Vec<D>& x, double half_width) {
     for (int d = 0; d < D; ++d) {
@@ -220,20 +317,21 @@ struct Stencil {
       for (int k = 0; k < S; ++k) {
         dw[d][k] *= g.inv_h;
         dx[d][k] = (base[d] + k - xg) * g.h;
+        offset[d][k] = g.axis_offset(d, base[d] + k);
       }
     }
-    base_linear = g.linear(base);
+    row_contiguous = offset[D - 1][S - 1] - offset[D - 1][0] == S - 1;
   }
 
   /// f(node, N_I(x_p), grad N_I(x_p), x_I - x_p) for every node of the stencil.
   template <class F>
-  void for_each(const Grid<D>& g, F&& f) const {
+  void for_each(const Grid<D>& /*g*/, F&& f) const {
     if constexpr (D == 1) {
-      for (int i = 0; i < S; ++i) f(base_linear + i, w[0][i], Vec<1>(dw[0][i]), Vec<1>(dx[0][i]));
+      for (int i = 0; i < S; ++i) f(offset[0][i], w[0][i], Vec<1>(dw[0][i]), Vec<1>(dx[0][i]));
     } else if constexpr (D == 2) {
       for (int i = 0; i < S; ++i) {
         for (int j = 0; j < S; ++j) {
-          const int node = base_linear + i * g.stride[0] + j;
+          const int node = offset[0][i] + offset[1][j];
           f(node, w[0][i] * w[1][j], Vec<2>(dw[0][i] * w[1][j], w[0][i] * dw[1][j]),
             Vec<2>(dx[0][i], dx[1][j]));
         }
@@ -244,9 +342,10 @@ struct Stencil {
           const double wij = w[0][i] * w[1][j];
           const double dwi_j = dw[0][i] * w[1][j];
           const double wi_dj = w[0][i] * dw[1][j];
-          const int row = base_linear + i * g.stride[0] + j * g.stride[1];
+          const int row = offset[0][i] + offset[1][j];
           for (int k = 0; k < S; ++k) {
-            f(row + k, wij * w[2][k], Vec<3>(dwi_j * w[2][k], wi_dj * w[2][k], wij * dw[2][k]),
+            f(row + offset[2][k], wij * w[2][k],
+              Vec<3>(dwi_j * w[2][k], wi_dj * w[2][k], wij * dw[2][k]),
               Vec<3>(dx[0][i], dx[1][j], dx[2][k]));
           }
         }
