@@ -495,7 +495,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
 
 #define MPM_ENHANCED_MEMBERS(D)                                                                   \
   template void Solver<D>::enhanced_assemble(DualWall<D>&);                                       \
-  template void Solver<D>::enhanced_solve(DualWall<D>&, NodeArray<Vec<D>>&,                     \
+  template void Solver<D>::enhanced_solve(DualWall<D>&, NodeArray<Vec<D>>&,                       \
                                           const std::vector<Vec<D>>&, std::vector<Vec<D>>&, bool, \
                                           bool);
 

@@ -3,8 +3,8 @@
 #include <sys/mman.h>
 #include <unistd.h>
 
-#include <cerrno>
 #include <algorithm>
+#include <cerrno>
 #include <cstring>
 #include <stdexcept>
 #include <string>
@@ -29,8 +29,8 @@ void PageBuffer::allocate(std::size_t bytes) {
                  MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE, -1, 0);
   if (p == MAP_FAILED) {
     throw std::runtime_error("grid: cannot reserve " + std::to_string(bytes) +
-                             " bytes of address space for a node array (" +
-                             std::strerror(errno) + ")");
+                             " bytes of address space for a node array (" + std::strerror(errno) +
+                             ")");
   }
   data_ = p;
   bytes_ = bytes;

@@ -602,6 +602,13 @@ int run_scene(const Scene& scene, const RunOptions& options) {
                                    {"factorizations", c.factorizations},
                                    {"refinement_passes", c.refinement_passes}};
   }
+  // The standard grid's memory: its node arrays are backed only where particles have been.
+  const mpm::GridMemory g = sim->grid_memory();
+  summary["grid_memory"] = {{"nodes", g.nodes},
+                            {"box_bytes", g.box_bytes},
+                            {"peak_bytes", g.peak_bytes},
+                            {"active_blocks_bytes_at_peak", g.active_at_peak},
+                            {"peak_active_blocks_bytes", g.peak_active}};
   summary["flow"] = flow_summary(scene, first, sim->frame(t, step));
   try {
     write_json_atomically(out / "summary.json", summary);

@@ -672,6 +672,10 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
       grid.fail_at(grid.child("spacing"), "the grid would have " + Reader::fmt(nodes) +
                                               " nodes (limit 4e8); use a larger spacing");
     }
+    const std::string storage = grid.choice("storage", {"auto", "dense", "sparse"}, "auto");
+    scene.grid_storage = storage == "dense"    ? GridStorage::dense
+                         : storage == "sparse" ? GridStorage::sparse
+                                               : GridStorage::automatic;
     grid.finish();
   }
 

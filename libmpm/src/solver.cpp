@@ -59,6 +59,7 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
     body_acceleration_.push_back(gravity_ + to_vec<D>(body.body_force));
   }
   fill_bodies();
+  choose_grid_storage(cells);
 
   const double mean_mass =
       particles.size() ? std::accumulate(particles.mass.begin(), particles.mass.end(), 0.0) /
@@ -120,6 +121,19 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
   for (std::size_t p = 0; p < particles.size(); ++p) {
     max_speed_ = std::max(max_speed_, particles.velocity[p].norm());
   }
+}
+
+template <int D>
+void Solver<D>::choose_grid_storage(const Index<D>& cells) {
+  bool sparse = scene_.grid_storage == GridStorage::sparse;
+  if (scene_.grid_storage == GridStorage::automatic) {
+    // The blocks the bodies reach (the grid's own marking, on the dense grid just made).
+    grid.begin_marking();
+    for (const Vec<D>& x : particles.position) grid.mark(x);
+    grid.finish_marking();
+    sparse = 2 * grid.active_blocks.size() < grid.block_active.size();
+  }
+  grid.resize(grid.origin, grid.h, cells + Index<D>::Constant(1 + 2 * pad), sparse);
 }
 
 template <int D>
@@ -345,7 +359,8 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
         }
         add_row(grid.force, row, r, w2, t, dw2);
         const double wm = wij * m;
-        for (int k = 0; k < S; ++k) grid.mass[static_cast<std::size_t>(row + k_offset[k])] += wm * w[2][k];
+        for (int k = 0; k < S; ++k)
+          grid.mass[static_cast<std::size_t>(row + k_offset[k])] += wm * w[2][k];
       }
     }
   };
@@ -546,18 +561,28 @@ enum SampleParts : unsigned { kIncrement = 1U, kGradient = 2U, kMoment = 4U };
 // sum_ijk w_i w_j dw_k v_ijk = sum_i w_i sum_j w_j sum_k dw_k v_ijk): about half the
 // arithmetic of the node loop, the same sums in another order. The generic loop serves
 // stencils that touch an empty node, where the sums skip it.
-template <unsigned Parts, class Shape>
+//
+// Dense: the grid's dense layout, where node (i, j, k) of the stencil is its first node plus
+// i stride_0 + j stride_1 + k (constant offsets along a row); otherwise the stencil's per-axis
+// offsets locate each node (a row of the sparse layout may cross a block).
+template <unsigned Parts, bool Dense, class Shape>
 bool sample_grid_factorised(const Grid<3>& grid, const Stencil<3, Shape>& st,
                             const NodeArray<Vec<3>>& v, const NodeArray<Vec<3>>& v_old,
                             double threshold, GridSample<3>& s) {
   constexpr int S = Shape::support;
   constexpr bool kG = (Parts & kGradient) != 0, kM = (Parts & kMoment) != 0;
   constexpr bool kI = (Parts & kIncrement) != 0;
-  const int(&k_offset)[S] = st.offset[2];
+  int k_offset[S];  // node k of a row is row(i, j) + k_offset[k]
+  for (int k = 0; k < S; ++k) k_offset[k] = Dense ? k : st.offset[2][k];
+  const int first = st.offset[0][0] + st.offset[1][0] + st.offset[2][0];  // the stencil's
+  const int s0 = grid.local_stride[0], s1 = grid.local_stride[1];         // dense: the strides
+  auto row_of = [&](int i, int j) {
+    return Dense ? first + i * s0 + j * s1 : st.offset[0][i] + st.offset[1][j];
+  };
   bool full = true;
   for (int i = 0; i < S; ++i) {
     for (int j = 0; j < S; ++j) {
-      const double* m = grid.mass.data() + st.offset[0][i] + st.offset[1][j];
+      const double* m = grid.mass.data() + row_of(i, j);
       for (int k = 0; k < S; ++k) full &= m[k_offset[k]] > threshold;
     }
   }
@@ -579,7 +604,7 @@ bool sample_grid_factorised(const Grid<3>& grid, const Stencil<3, Shape>& st,
   for (int i = 0; i < S; ++i) {
     double jv[3] = {}, jinc[3] = {}, jdy[3] = {}, jdz[3] = {}, jmy[3] = {}, jmz[3] = {};
     for (int j = 0; j < S; ++j) {
-      const int row = st.offset[0][i] + st.offset[1][j];
+      const int row = row_of(i, j);
       double kv[3] = {}, kinc[3] = {}, kd[3] = {}, km[3] = {};
       for (int k = 0; k < S; ++k) {
         const double* vn = v[static_cast<std::size_t>(row + k_offset[k])].data();
@@ -645,7 +670,10 @@ GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
                           double threshold) {
   if constexpr (D == 3) {
     GridSample<3> s;
-    if (sample_grid_factorised<Parts>(grid, st, v, v_old, threshold, s)) return s;
+    if (grid.sparse ? sample_grid_factorised<Parts, false>(grid, st, v, v_old, threshold, s)
+                    : sample_grid_factorised<Parts, true>(grid, st, v, v_old, threshold, s)) {
+      return s;
+    }
   }
   double weight = 0.0;
   double value[D] = {}, increment[D] = {}, grad_sum[D] = {}, dx_sum[D] = {};

@@ -33,23 +33,23 @@ using SparseLdlt = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 /// that carry an enhancement ("alpha" columns) and the Gamma multipliers in contact.
 template <int D>
 struct EnhancedState {
-  std::vector<int> a_rows;                ///< compact row -> standard-grid node
-  std::vector<int> a_row_of;              ///< standard-grid node -> compact row, -1 (grid-sized)
-  std::vector<int> alpha_cols;            ///< compact column -> boundary-grid node
-  std::vector<int> alpha_col_of;          ///< boundary-grid node -> compact column, -1
-  Eigen::VectorXd inv_mass;               ///< 1 / m^A of the near rows
-  Eigen::VectorXd alpha_mass;             ///< lumped m^alpha of the columns
-  Eigen::SparseMatrix<double> cross;      ///< m^{A,alpha}: near rows x alpha columns
-  Eigen::SparseMatrix<double> schur;      ///< K = M^alpha - C^T M_A^-1 C (alpha columns)
+  std::vector<int> a_rows;                 ///< compact row -> standard-grid node
+  std::vector<int> a_row_of;               ///< standard-grid node -> compact row, -1 (grid-sized)
+  std::vector<int> alpha_cols;             ///< compact column -> boundary-grid node
+  std::vector<int> alpha_col_of;           ///< boundary-grid node -> compact column, -1
+  Eigen::VectorXd inv_mass;                ///< 1 / m^A of the near rows
+  Eigen::VectorXd alpha_mass;              ///< lumped m^alpha of the columns
+  Eigen::SparseMatrix<double> cross;       ///< m^{A,alpha}: near rows x alpha columns
+  Eigen::SparseMatrix<double> schur;       ///< K = M^alpha - C^T M_A^-1 C (alpha columns)
   Eigen::SparseMatrix<double> gamma_grid;  ///< R^A on Gamma, all multipliers (grid node rows)
-  Eigen::SparseMatrix<double> grid_r;     ///< R^A on Gamma: near rows x active multipliers
-  Eigen::SparseMatrix<double> alpha_r;    ///< R^alpha on Gamma: alpha columns x multipliers
-  Eigen::SparseMatrix<double> coupled_r;  ///< W = R^alpha - C^T M_A^-1 R^A
-  Eigen::SparseMatrix<double> grid_rr;    ///< R^A^T M_A^-1 R^A
-  std::vector<int> multipliers;           ///< active multiplier -> wall-coupling column
-  std::vector<Vec<D>> normal;             ///< unit normal into the material, per multiplier
-  std::vector<int> part;                  ///< part index, per multiplier
-  Eigen::VectorXd integral;               ///< sum of the kept R^A entries (= integral S_mu)
+  Eigen::SparseMatrix<double> grid_r;      ///< R^A on Gamma: near rows x active multipliers
+  Eigen::SparseMatrix<double> alpha_r;     ///< R^alpha on Gamma: alpha columns x multipliers
+  Eigen::SparseMatrix<double> coupled_r;   ///< W = R^alpha - C^T M_A^-1 R^A
+  Eigen::SparseMatrix<double> grid_rr;     ///< R^A^T M_A^-1 R^A
+  std::vector<int> multipliers;            ///< active multiplier -> wall-coupling column
+  std::vector<Vec<D>> normal;              ///< unit normal into the material, per multiplier
+  std::vector<int> part;                   ///< part index, per multiplier
+  Eigen::VectorXd integral;                ///< sum of the kept R^A entries (= integral S_mu)
   std::unique_ptr<SparseLdlt> schur_solver = std::make_unique<SparseLdlt>();
   std::unique_ptr<SparseLdlt> kkt_solver = std::make_unique<SparseLdlt>();
   std::size_t dropped_dependent = 0;  ///< alpha nodes dropped this step (near-dependent bases)

@@ -34,12 +34,16 @@ void node_velocities(double m, const Vec<D>& momentum, const Vec<D>& force, doub
   }
 }
 
-/// The standard Cartesian grid (the A-grid), stored by blocks of kBlock^D nodes: a node's index
-/// is its block's index times kBlockNodes plus its place in the block (last axis fastest in
-/// both), so a block's nodes are one contiguous run of every array. The arrays span the scene's
-/// box in address space, but memory backs only the pages of blocks that have held particles
-/// (NodeArray); blocks idle for kReleaseAfter steps are handed back. A hillside's box is mostly
-/// air: its grid costs what the flow covers, not what the box holds.
+/// The standard Cartesian grid (the A-grid) as flat node arrays, in one of two layouts:
+/// - dense: node index sum_d i_d stride_d, last axis fastest (for a box the material fills);
+/// - sparse: by blocks of kBlock^D nodes, a node's index its block's index times kBlockNodes
+///   plus its place in the block (last axis fastest in both), so that a block's nodes are one
+///   contiguous run of every array. The arrays span the box in address space, but memory backs
+///   only the pages of blocks that have held particles (NodeArray), and pages whose blocks have
+///   been idle for kReleaseAfter steps are handed back. A hillside's box is mostly air: its
+///   grid then costs what the flow covers, not what the box holds.
+/// Both layouts number nodes separably (linear(i) = sum_d axis_offset(d, i_d)); code that
+/// forms node indices through linear(), axis_offset() or the Stencil serves both.
 template <int D>
 struct Grid {
   Vec<D> origin = Vec<D>::Zero();  ///< position of node (0,...,0)
@@ -53,7 +57,7 @@ struct Grid {
   NodeArray<Vec<D>> velocity;      ///< v_I^n = p_I / m_I (before the force update)
   NodeArray<Vec<D>> velocity_new;  ///< v_I^{n+1} after forces and wall conditions
 
-  static constexpr int kBlock = 4;
+  static constexpr int kBlock = 4;                                   // axis_offset() relies on it
   static constexpr int kBlockNodes = D == 1 ? 4 : D == 2 ? 16 : 64;  ///< kBlock^D
   /// Steps a block stays idle before its pages may be returned (a flow that comes back soon
   /// does not pay the page faults again).
@@ -61,7 +65,9 @@ struct Grid {
   /// Bytes per node over the five arrays.
   static constexpr std::size_t kNodeBytes = sizeof(double) + 4 * sizeof(Vec<D>);
 
-  void resize(const Vec<D>& grid_origin, double spacing, const Index<D>& node_count) {
+  void resize(const Vec<D>& grid_origin, double spacing, const Index<D>& node_count,
+              bool sparse_layout = false) {
+    sparse = sparse_layout;
     origin = grid_origin;
     h = spacing;
     inv_h = 1.0 / spacing;
@@ -70,9 +76,12 @@ struct Grid {
       blocks[d] = (nodes[d] + kBlock - 1) / kBlock;
       halves[d] = (nodes[d] + 1) / 2;
     }
-    for (int d = D - 1, local = 1, block = kBlockNodes; d >= 0; --d) {
-      local_stride[d] = local;
-      block_stride[d] = block;
+    // i_d stride_d = (i_d / 4) (4 stride_d) + (i_d % 4) stride_d: the dense layout is the
+    // blocked formula with these strides, so axis_offset() has no branch.
+    for (int d = D - 1, dense = 1, local = 1, block = kBlockNodes; d >= 0; --d) {
+      local_stride[d] = sparse ? local : dense;
+      block_stride[d] = sparse ? block : kBlock * dense;
+      dense *= nodes[d];
       local *= kBlock;
       block *= blocks[d];
     }
@@ -89,13 +98,14 @@ struct Grid {
     resident.assign(block_count, 0);
     resident_blocks = 0;
     epoch = 0;
+    peak_committed = active_at_peak = peak_active = 0;
     active_blocks.clear();
     previous_blocks.clear();
   }
-  /// Node slots in storage: the box padded up to whole blocks. Slots past the box (some of
-  /// the last block along each axis) hold zeros and never carry mass.
+  /// Node slots in storage. Sparse: the box padded up to whole blocks; the slots past the box
+  /// (in the last block along an axis) hold zeros and never carry mass.
   [[nodiscard]] std::size_t size() const {
-    return static_cast<std::size_t>(blocks.prod()) * kBlockNodes;
+    return sparse ? static_cast<std::size_t>(blocks.prod()) * kBlockNodes : node_count();
   }
   /// Nodes in the box.
   [[nodiscard]] std::size_t node_count() const { return static_cast<std::size_t>(nodes.prod()); }
@@ -103,8 +113,11 @@ struct Grid {
   [[nodiscard]] std::size_t box_bytes() const { return node_count() * kNodeBytes; }
   /// What node index i_d along axis d adds to a node's index (indices are separable: the index
   /// of node i is the sum over the axes).
+  /// (i >= 0: the box's nodes.)
   [[nodiscard]] int axis_offset(int d, int i) const {
-    return (i / kBlock) * block_stride[d] + (i % kBlock) * local_stride[d];
+    const auto u = static_cast<unsigned>(i);
+    return static_cast<int>((u >> 2U) * static_cast<unsigned>(block_stride[d]) +
+                            (u & 3U) * static_cast<unsigned>(local_stride[d]));
   }
   [[nodiscard]] int linear(const Index<D>& i) const {
     int n = 0;
@@ -112,9 +125,16 @@ struct Grid {
     return n;
   }
   [[nodiscard]] Index<D> multi(int linear_index) const {
+    Index<D> i;
+    if (!sparse) {
+      for (int d = D - 1; d >= 0; --d) {
+        i[d] = linear_index % nodes[d];
+        linear_index /= nodes[d];
+      }
+      return i;
+    }
     int block = linear_index / kBlockNodes;
     int local = linear_index % kBlockNodes;
-    Index<D> i;
     for (int d = D - 1; d >= 0; --d) {
       i[d] = (block % blocks[d]) * kBlock + local % kBlock;
       block /= blocks[d];
@@ -134,8 +154,9 @@ struct Grid {
   // 4b..4b+3 is reached from the half-blocks 2b-1..2b+2.
   Index<D> blocks = Index<D>::Ones();        ///< blocks per axis
   Index<D> halves = Index<D>::Ones();        ///< half-blocks per axis
-  Index<D> local_stride = Index<D>::Ones();  ///< within a block, last axis fastest
-  Index<D> block_stride = Index<D>::Ones();  ///< from block to block, last axis fastest
+  bool sparse = false;                       ///< the layout (see the struct's comment)
+  Index<D> local_stride = Index<D>::Ones();  ///< axis_offset(): (i % 4) local_stride
+  Index<D> block_stride = Index<D>::Ones();  ///<   + (i / 4) block_stride
   std::vector<std::uint8_t> block_active;    ///< this step's flags
   std::vector<std::uint8_t> half_marked;     ///< this step's particles' half-blocks
   std::vector<int> active_blocks;            ///< this step's blocks, in index order
@@ -144,6 +165,9 @@ struct Grid {
   std::vector<std::uint8_t> resident;        ///< may the block's pages hold memory?
   std::size_t resident_blocks = 0;
   int epoch = 0;  ///< steps marked so far
+  /// Sampled by release_idle(): the most memory the node arrays held, the active blocks' need
+  /// then, and the most the active blocks needed at any sample.
+  std::size_t peak_committed = 0, active_at_peak = 0, peak_active = 0;
 
   /// Linear index of the block with per-axis indices b (last axis fastest, as nodes).
   [[nodiscard]] int block_index(const Index<D>& b) const {
@@ -152,7 +176,9 @@ struct Grid {
     return linear_block;
   }
   /// The block holding a node.
-  [[nodiscard]] int block_of(int node) const { return node / kBlockNodes; }
+  [[nodiscard]] int block_of(int node) const {
+    return sparse ? node / kBlockNodes : block_index((multi(node).array() / kBlock).matrix());
+  }
   /// Starts a step's marking: the last step's blocks become the previous ones.
   void begin_marking() {
     for (const int b : active_blocks) block_active[static_cast<std::size_t>(b)] = 0;
@@ -205,18 +231,44 @@ struct Grid {
       }
     }
   }
-  /// Calls f(first, count) for each run of nodes of `block` contiguous in memory: one, the
-  /// whole block.
+  /// Calls f(first, count) for each run of nodes of `block` contiguous in memory: sparse, one,
+  /// the whole block (padding slots past the box included: they have no mass); dense, one per
+  /// row along the last axis.
   template <class F>
   void for_each_run(int block, F&& f) const {
-    f(block * kBlockNodes, kBlockNodes);
+    if (sparse) {
+      f(block * kBlockNodes, kBlockNodes);
+      return;
+    }
+    Index<D> b;
+    for (int d = D - 1; d >= 0; --d) {
+      b[d] = block % blocks[d];
+      block /= blocks[d];
+    }
+    Index<D> lo, hi;
+    for (int d = 0; d < D; ++d) {
+      lo[d] = b[d] * kBlock;
+      hi[d] = std::min(lo[d] + kBlock, nodes[d]);
+    }
+    const int count = hi[D - 1] - lo[D - 1];
+    Index<D> i = lo;
+    while (true) {
+      f(linear(i), count);
+      int d = D - 2;
+      while (d >= 0 && i[d] + 1 == hi[d]) {
+        i[d] = lo[d];
+        --d;
+      }
+      if (d < 0) break;
+      ++i[d];
+    }
   }
-  /// Calls f(node) for every node slot of `block` (padding slots past the box included: they
-  /// have no mass).
+  /// Calls f(node) for every node of `block`.
   template <class F>
   void for_each_node(int block, F&& f) const {
-    const auto first = static_cast<std::size_t>(block) * kBlockNodes;
-    for (std::size_t n = first; n < first + kBlockNodes; ++n) f(n);
+    for_each_run(block, [&](int first, int count) {
+      for (int n = first; n < first + count; ++n) f(static_cast<std::size_t>(n));
+    });
   }
   /// Zeroes what the last step left in its block previous_blocks[k] for the particles-to-grid
   /// transfer: mass, momentum and force, and the velocities if this step does not have the
@@ -225,19 +277,29 @@ struct Grid {
   void clear_previous(std::size_t k) {
     const int b = previous_blocks[k];
     const bool stays = block_active[static_cast<std::size_t>(b)] != 0;
-    const auto first = static_cast<std::size_t>(b) * kBlockNodes;
-    std::fill_n(mass.begin() + first, kBlockNodes, 0.0);
-    std::fill_n(momentum.begin() + first, kBlockNodes, Vec<D>::Zero());
-    std::fill_n(force.begin() + first, kBlockNodes, Vec<D>::Zero());
-    if (stays) return;
-    std::fill_n(velocity.begin() + first, kBlockNodes, Vec<D>::Zero());
-    std::fill_n(velocity_new.begin() + first, kBlockNodes, Vec<D>::Zero());
+    for_each_run(b, [&](int first, int count) {
+      std::fill_n(mass.begin() + first, count, 0.0);
+      std::fill_n(momentum.begin() + first, count, Vec<D>::Zero());
+      std::fill_n(force.begin() + first, count, Vec<D>::Zero());
+      if (stays) return;
+      std::fill_n(velocity.begin() + first, count, Vec<D>::Zero());
+      std::fill_n(velocity_new.begin() + first, count, Vec<D>::Zero());
+    });
   }
   /// Every kReleaseAfter / 2 steps, returns to the system the pages of the arrays that hold
   /// only blocks idle for kReleaseAfter steps or more (they are all zero: clear_previous()).
-  /// Serial, after the clearing; touches only blocks that may hold memory.
+  /// Serial, after the clearing; touches only blocks that may hold memory. Sparse layout only
+  /// (a dense one only samples its memory).
   void release_idle() {
-    if (epoch % (kReleaseAfter / 2) != 0 || resident_blocks == 0) return;
+    if (epoch % (kReleaseAfter / 2) != 0 && epoch != 1) return;
+    // Memory is at its most just before a release: sample it there.
+    const std::size_t committed = committed_bytes();
+    if (committed > peak_committed) {
+      peak_committed = committed;
+      active_at_peak = active_bytes();
+    }
+    peak_active = std::max(peak_active, active_bytes());
+    if (!sparse) return;
     auto idle = [&](std::size_t b) { return last_active[b] + kReleaseAfter <= epoch; };
     const std::size_t page = PageBuffer::page_size();
     const std::size_t count = resident.size();
@@ -275,11 +337,13 @@ struct Grid {
   }
   /// Bytes of the node arrays backed by memory: the pages that overlap a block that may hold
   /// memory (what release_idle() has not returned).
+  /// Dense: the whole box (its pages are written as the material reaches them, and kept).
   [[nodiscard]] std::size_t committed_bytes() const {
+    if (!sparse) return box_bytes();
     const std::size_t page = PageBuffer::page_size();
     std::size_t total = 0;
-    for (const std::size_t node_bytes : {sizeof(double), sizeof(Vec<D>), sizeof(Vec<D>),
-                                         sizeof(Vec<D>), sizeof(Vec<D>)}) {
+    for (const std::size_t node_bytes :
+         {sizeof(double), sizeof(Vec<D>), sizeof(Vec<D>), sizeof(Vec<D>), sizeof(Vec<D>)}) {
       const std::size_t bytes = kBlockNodes * node_bytes;
       std::size_t pages = 0, next = 0;  // pages counted, and the first page not yet counted
       for (std::size_t b = 0; b < resident.size(); ++b) {
@@ -305,19 +369,25 @@ struct Stencil {
   static constexpr int S = Shape::support;
   Index<D> base;
   double w[D][S];
-  double dw[D][S];    ///< already divided by h
-  double dx[D][S];    ///< x_I - x_p per axis
-  int offset[D][S];   ///< node (i, j, k) is offset[0][i] + offset[1][j] + offset[2][k]
+  double dw[D][S];      ///< already divided by h
+  double dx[D][S];      ///< x_I - x_p per axis
+  int offset[D][S];     ///< node (i, j, k) is offset[0][i] + offset[1][j] + offset[2][k]
   bool row_contiguous;  ///< are the nodes along the last axis adjacent in memory?
 
   Stencil(const Grid<D>& g, const Vec<D>& x, double half_width) {
     for (int d = 0; d < D; ++d) {
       const double xg = (x[d] - g.origin[d]) * g.inv_h;
       Shape::weights(xg, half_width, base[d], w[d], dw[d]);
+      // Node base + k is one local step further per k, and crosses into the next block where
+      // (base + k) % 4 wraps to 0 (dense layout: block_stride = 4 local_stride, no jump).
+      const int first = g.axis_offset(d, base[d]);
+      const int local = g.local_stride[d];
+      const int jump = g.block_stride[d] - Grid<D>::kBlock * local;
+      const int within = base[d] & (Grid<D>::kBlock - 1);
       for (int k = 0; k < S; ++k) {
         dw[d][k] *= g.inv_h;
         dx[d][k] = (base[d] + k - xg) * g.h;
-        offset[d][k] = g.axis_offset(d, base[d] + k);
+        offset[d][k] = first + k * local + (within + k >= Grid<D>::kBlock ? jump : 0);
       }
     }
     row_contiguous = offset[D - 1][S - 1] - offset[D - 1][0] == S - 1;

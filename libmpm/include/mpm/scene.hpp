@@ -95,12 +95,18 @@ struct DualWallSpec {
   std::shared_ptr<const BoundaryPackage> package;
 };
 
+/// The standard grid's storage (mpm::Grid): dense over the box, sparse by blocks with memory
+/// only where particles have been, or chosen from the bodies (sparse when their blocks are
+/// less than half of the box's).
+enum class GridStorage { automatic, dense, sparse };
+
 struct Scene {
   std::filesystem::path file;  ///< where it came from, for messages ("<memory>" otherwise)
   std::string name;
   int dimension = 3;
   Eigen::VectorXd box_min, box_max;  ///< the grid box; walls sit on its faces
   double spacing = 0.0;
+  GridStorage grid_storage = GridStorage::automatic;
   ShapeKind shape = ShapeKind::bspline2;
   UpdateScheme update = UpdateScheme::musl;
   Transfer transfer = Transfer::apic;

@@ -65,6 +65,15 @@ struct CouplingWork {
   std::size_t refinement_passes = 0;
 };
 
+/// The standard grid's memory (bytes over its five node arrays), sampled every 16 steps.
+struct GridMemory {
+  std::size_t nodes = 0;           ///< nodes in the scene's box (ghost layers included)
+  std::size_t box_bytes = 0;       ///< what the box would take stored densely
+  std::size_t peak_bytes = 0;      ///< the most the arrays held (pages backed by memory)
+  std::size_t active_at_peak = 0;  ///< what the active blocks' nodes needed then
+  std::size_t peak_active = 0;     ///< the most the active blocks needed
+};
+
 /// Dimension-independent face of a solver, used by the run loop and the command line.
 class Simulation {
  public:
@@ -97,6 +106,7 @@ class Simulation {
   [[nodiscard]] virtual const PhaseTimes& phase_times() const = 0;
   /// One entry per dual-grid wall (Blending or Enhanced; sdf walls have no coupling).
   [[nodiscard]] virtual std::vector<CouplingWork> coupling_work() const = 0;
+  [[nodiscard]] virtual GridMemory grid_memory() const = 0;
 };
 
 std::unique_ptr<Simulation> make_simulation(const Scene& scene);
@@ -125,6 +135,10 @@ class Solver final : public Simulation {
   void restore_state(const Checkpoint& checkpoint) override;
   [[nodiscard]] const PhaseTimes& phase_times() const override { return times_; }
   [[nodiscard]] std::vector<CouplingWork> coupling_work() const override;
+  [[nodiscard]] GridMemory grid_memory() const override {
+    return {grid.node_count(), grid.box_bytes(), grid.peak_committed, grid.active_at_peak,
+            grid.peak_active};
+  }
 
   // The phases of a step, public so tests can check each one.
   void particles_to_grid();
@@ -198,6 +212,8 @@ class Solver final : public Simulation {
   void setup_sdf_wall(const DualWallSpec& spec);
   void constrain_sdf_walls(NodeArray<Vec<D>>& velocity, bool record);
   void fill_bodies();
+  /// Grid storage for the scene (GridStorage): resizes the grid, after fill_bodies().
+  void choose_grid_storage(const Index<D>& cells);
   void bin_particles_into_slabs();
 
   Scene scene_;
