@@ -6,6 +6,7 @@
 //   BM_StandardStepUSL3D/N : the same with USL, one transfer each way as the yardstick's MLS-MPM
 //                          step (MUSL, the default, maps the momenta back to the grid and
 //                          gathers again: two transfers each way)
+//   BM_StandardStepSparse3D/N : BM_StandardStep3D on the sparse grid layout (grid "storage")
 //   BM_FloorStep3D/N/m   : an N x N x 10-cell block resting on a floor under gravity, so 10% of
 //                          the particles are within h of it; m = 0: standard wall on the box face
 //                          (grid line), 1: Blending mortar dual-grid floor, 2: one-way,
@@ -38,12 +39,16 @@ nlohmann::json material() {
           {"poisson_ratio", 0.3}};
 }
 
-mpm::Scene block_scene(int cells, const char* update = "musl") {
+mpm::Scene block_scene(int cells, const char* update = "musl", const char* storage = "auto") {
   // Grid box with a one-cell margin around a cube of `cells`^3 filled cells.
   const double h = 1.0 / cells;
   const nlohmann::json doc = {
       {"dimension", 3},
-      {"grid", {{"min", {-h, -h, -h}}, {"max", {1.0 + h, 1.0 + h, 1.0 + h}}, {"spacing", h}}},
+      {"grid",
+       {{"min", {-h, -h, -h}},
+        {"max", {1.0 + h, 1.0 + h, 1.0 + h}},
+        {"spacing", h},
+        {"storage", storage}}},
       {"shape_function", "bspline2"},
       {"scheme", {{"update", update}, {"transfer", "apic"}}},
       {"materials", {material()}},
@@ -114,8 +119,8 @@ double heap_bytes() {
   return static_cast<double>(info.uordblks + info.hblkhd);
 }
 
-void standard_step(benchmark::State& state, const char* update) {
-  const mpm::Scene scene = block_scene(static_cast<int>(state.range(0)), update);
+void standard_step(benchmark::State& state, const char* update, const char* storage = "auto") {
+  const mpm::Scene scene = block_scene(static_cast<int>(state.range(0)), update, storage);
   const double before = heap_bytes();
   mpm::Solver<3> solver(scene);
   const double dt = solver.stable_dt(0.3);
@@ -137,6 +142,10 @@ BENCHMARK(BM_StandardStep3D)
     ->UseRealTime();
 void BM_StandardStepUSL3D(benchmark::State& state) { standard_step(state, "usl"); }
 BENCHMARK(BM_StandardStepUSL3D)->Arg(32)->Unit(benchmark::kMillisecond)->UseRealTime();
+// The same block in the sparse grid layout (a box the block fills is dense by default): what
+// the blocked, page-backed storage costs the transfers.
+void BM_StandardStepSparse3D(benchmark::State& state) { standard_step(state, "musl", "sparse"); }
+BENCHMARK(BM_StandardStepSparse3D)->Arg(32)->Unit(benchmark::kMillisecond)->UseRealTime();
 
 void BM_FloorStep3D(benchmark::State& state) {
   const mpm::Scene scene =

@@ -94,9 +94,12 @@ std::vector<int> aggregate_multipliers(const DualWall<D>& w, const std::vector<i
 /// The scene reader has checked that the package was made for this grid (same nodes, origin).
 template <int D>
 Eigen::SparseMatrix<double> on_grid(const Grid<D>& grid, const Eigen::SparseMatrix<double>& m) {
-  std::vector<Eigen::Triplet<double>> entries;
-  entries.reserve(static_cast<std::size_t>(m.nonZeros()));
+  // Column by column (no row-major temporary: the rows are the grid's node slots).
+  Eigen::SparseMatrix<double> out(static_cast<Eigen::Index>(grid.size()), m.cols());
+  out.reserve(m.nonZeros());
+  std::vector<std::pair<int, double>> column;
   for (int col = 0; col < m.outerSize(); ++col) {
+    column.clear();
     for (Eigen::SparseMatrix<double>::InnerIterator it(m, col); it; ++it) {
       auto row = static_cast<int>(it.row());
       Index<D> i;
@@ -104,11 +107,13 @@ Eigen::SparseMatrix<double> on_grid(const Grid<D>& grid, const Eigen::SparseMatr
         i[d] = row % grid.nodes[d];
         row /= grid.nodes[d];
       }
-      entries.emplace_back(grid.linear(i), col, it.value());
+      column.emplace_back(grid.linear(i), it.value());
     }
+    std::sort(column.begin(), column.end());
+    out.startVec(col);
+    for (const auto& [row, value] : column) out.insertBack(row, col) = value;
   }
-  Eigen::SparseMatrix<double> out(static_cast<Eigen::Index>(grid.size()), m.cols());
-  out.setFromTriplets(entries.begin(), entries.end());
+  out.finalize();
   return out;
 }
 
@@ -179,10 +184,10 @@ void Solver<D>::setup_dual_walls() {
     if (w.enhanced) {
       w.momentum_new.assign(n, Vec<D>::Zero());
       w.enh.gamma_grid = on_grid(grid, spec.package->wall_coupling.grid);
-      w.enh.a_row_of.assign(grid.size(), -1);
+      w.enh.a_row_of.assign_zero(grid.size());
       w.enh.alpha_col_of.assign(n, -1);
     } else {
-      w.grid_row_of.assign(grid.size(), -1);
+      w.grid_row_of.assign_zero(grid.size());
       w.layer_row_of.assign(n, -1);
     }
 
@@ -542,7 +547,6 @@ void Solver<D>::layer_couple(bool remapped) {
     if (!remapped) {
       // Assemble the active coupling and its Schur complement once per step; the MUSL remap
       // reuses it (the masses do not change).
-      for (const int node : w.grid_rows) w.grid_row_of[node] = -1;
       for (const int node : w.layer_rows) w.layer_row_of[node] = -1;
       w.active_multipliers.clear();
       w.grid_rows.clear();
@@ -577,7 +581,7 @@ void Solver<D>::layer_couple(bool remapped) {
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
           const int node = static_cast<int>(it.row());
           if (grid.mass[node] > coupling_threshold_) {
-            ga.emplace_back(compact(w.grid_row_of, w.grid_rows, node), col, gs * it.value());
+            ga.emplace_back(node_row(w.grid_row_of, w.grid_rows, node), col, gs * it.value());
           }
         }
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {

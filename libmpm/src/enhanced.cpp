@@ -50,19 +50,11 @@ template <int D>
 void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   auto& P = particles;
   EnhancedState<D>& e = w.enh;
-  for (const int n : e.a_rows) e.a_row_of[n] = -1;
   for (const int n : e.alpha_cols) e.alpha_col_of[n] = -1;
   e.a_rows.clear();
   e.alpha_cols.clear();
   const int wall_index = static_cast<int>(&w - dual_.data());
-  auto row_of = [&](int node) {
-    int& r = e.a_row_of[node];
-    if (r < 0) {
-      r = static_cast<int>(e.a_rows.size());
-      e.a_rows.push_back(node);
-    }
-    return r;
-  };
+  auto row_of = [&](int node) { return node_row(e.a_row_of, e.a_rows, node); };
 
   // Candidate alpha columns: free nodes (not on Phi) with mass; candidates are numbered first
   // and renumbered after the dependence check.

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "mpm/boundary_package.hpp"
+#include "mpm/node_array.hpp"
 #include "mpm/scene.hpp"
 #include "mpm/types.hpp"
 #include "mpmgeom/locator.hpp"
@@ -34,7 +35,7 @@ using SparseLdlt = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 template <int D>
 struct EnhancedState {
   std::vector<int> a_rows;                 ///< compact row -> standard-grid node
-  std::vector<int> a_row_of;               ///< standard-grid node -> compact row, -1 (grid-sized)
+  NodeArray<int> a_row_of;                 ///< standard-grid node -> row (node_row())
   std::vector<int> alpha_cols;             ///< compact column -> boundary-grid node
   std::vector<int> alpha_col_of;           ///< boundary-grid node -> compact column, -1
   Eigen::VectorXd inv_mass;                ///< 1 / m^A of the near rows
@@ -122,8 +123,11 @@ struct DualWall {
   /// the per-step work scales with the interface, not with the whole grid.
   Eigen::SparseMatrix<double> grid_active, boundary_active;
   std::vector<int> grid_rows, layer_rows;
-  /// Inverse of grid_rows / layer_rows (-1: not a row this step), sized to the grids.
-  std::vector<int> grid_row_of, layer_row_of;
+  /// Inverses of grid_rows (node_row(): valid where grid_rows points back; page-backed, so a
+  /// wall on a sparse grid holds memory only near its rows) and of layer_rows (-1: not a row
+  /// this step), sized to the grids.
+  NodeArray<int> grid_row_of;
+  std::vector<int> layer_row_of;
   /// The Schur complement S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha) + shift I on
   /// the active multipliers is kept as its factors (this step's inverse masses of the kept rows
   /// and the shift); `schur` holds a factorisation (held by pointer: Eigen's solvers cannot be

@@ -7,6 +7,9 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <limits>
+#include <stdexcept>
+#include <string>
 #include <type_traits>
 #include <vector>
 
@@ -36,12 +39,15 @@ void node_velocities(double m, const Vec<D>& momentum, const Vec<D>& force, doub
 
 /// The standard Cartesian grid (the A-grid) as flat node arrays, in one of two layouts:
 /// - dense: node index sum_d i_d stride_d, last axis fastest (for a box the material fills);
-/// - sparse: by blocks of kBlock^D nodes, a node's index its block's index times kBlockNodes
-///   plus its place in the block (last axis fastest in both), so that a block's nodes are one
-///   contiguous run of every array. The arrays span the box in address space, but memory backs
-///   only the pages of blocks that have held particles (NodeArray), and pages whose blocks have
-///   been idle for kReleaseAfter steps are handed back. A hillside's box is mostly air: its
-///   grid then costs what the flow covers, not what the box holds.
+/// - sparse: by blocks of kBlock^D nodes, a node's index its block's place in storage times
+///   kBlockNodes plus its place in the block (last axis fastest), so that a block's nodes are
+///   one contiguous run of every array. Blocks are stored in Morton (Z) order, so the blocks a
+///   4 kB page holds (8 of masses, 2.7 of vectors) are neighbours in every direction, not a
+///   column along one axis. The arrays span the box in address space (more: Morton order pads
+///   each axis to a power of two), but memory backs only the pages of blocks that have held
+///   particles (NodeArray), and pages whose blocks have been idle for kReleaseAfter steps are
+///   handed back. A hillside's box is mostly air: its grid then costs what the flow covers,
+///   not what the box holds.
 /// Both layouts number nodes separably (linear(i) = sum_d axis_offset(d, i_d)); code that
 /// forms node indices through linear(), axis_offset() or the Stencil serves both.
 template <int D>
@@ -57,7 +63,7 @@ struct Grid {
   NodeArray<Vec<D>> velocity;      ///< v_I^n = p_I / m_I (before the force update)
   NodeArray<Vec<D>> velocity_new;  ///< v_I^{n+1} after forces and wall conditions
 
-  static constexpr int kBlock = 4;                                   // axis_offset() relies on it
+  static constexpr int kBlock = 4;
   static constexpr int kBlockNodes = D == 1 ? 4 : D == 2 ? 16 : 64;  ///< kBlock^D
   /// Steps a block stays idle before its pages may be returned (a flow that comes back soon
   /// does not pay the page faults again).
@@ -76,14 +82,60 @@ struct Grid {
       blocks[d] = (nodes[d] + kBlock - 1) / kBlock;
       halves[d] = (nodes[d] + 1) / 2;
     }
-    // i_d stride_d = (i_d / 4) (4 stride_d) + (i_d % 4) stride_d: the dense layout is the
-    // blocked formula with these strides, so axis_offset() has no branch.
-    for (int d = D - 1, dense = 1, local = 1, block = kBlockNodes; d >= 0; --d) {
+    // Per-axis offsets: dense, i stride_d; sparse, kBlockNodes times the Morton spread of the
+    // block coordinate i / 4 (its bits moved to the axis's bit positions: disjoint, so the
+    // block's Morton index is the sum over the axes) plus (i % 4) times the in-block stride.
+    // Bit positions are dealt round the axes, lowest bits first and the last axis first in each
+    // round, skipping an axis once its coordinates have no more bits: a flat box's blocks then
+    // fill the index range to within a factor of 2 per axis, not up to the longest axis cubed.
+    {
+      int bits[D], next = 0;
+      for (int d = 0; d < D; ++d) {
+        bits[d] = 0;
+        while ((blocks[d] - 1) >> bits[d]) ++bits[d];
+        bit_position[d].clear();
+      }
+      for (int k = 0; k < 31; ++k) {
+        for (int d = D - 1; d >= 0; --d) {
+          if (k < bits[d]) bit_position[d].push_back(next++);
+        }
+      }
+    }
+    long slots = 1;
+    for (int d = D - 1, dense = 1, local = 1; d >= 0; --d) {
       local_stride[d] = sparse ? local : dense;
-      block_stride[d] = sparse ? block : kBlock * dense;
       dense *= nodes[d];
       local *= kBlock;
-      block *= blocks[d];
+    }
+    long last_block = 0;  // Morton index of the last block: the largest
+    for (int d = 0; d < D; ++d) {
+      offset_table[d].resize(static_cast<std::size_t>(nodes[d]));
+      for (int i = 0; i < nodes[d]; ++i) {
+        offset_table[d][static_cast<std::size_t>(i)] =
+            sparse ? static_cast<int>(kBlockNodes * spread(d, i / kBlock) +
+                                      (i % kBlock) * local_stride[d])
+                   : i * local_stride[d];
+      }
+      last_block += spread(d, blocks[d] - 1);
+    }
+    slots = sparse ? (last_block + 1) * kBlockNodes : nodes.template cast<long>().prod();
+    if (slots > std::numeric_limits<int>::max()) {
+      throw std::runtime_error("grid: " + std::to_string(slots) +
+                               " node slots in the sparse layout exceed the index range; use "
+                               "\"storage\": \"dense\" or a larger spacing");
+    }
+    slot_count = static_cast<std::size_t>(slots);
+    const auto block_count = static_cast<std::size_t>(blocks.prod());
+    storage_block.resize(block_count);
+    for (std::size_t b = 0; b < block_count; ++b) {
+      Index<D> c;
+      auto rest = static_cast<int>(b);
+      for (int d = D - 1; d >= 0; --d) {
+        c[d] = rest % blocks[d];
+        rest /= blocks[d];
+      }
+      storage_block[b] = sparse ? static_cast<int>(linear((c * kBlock).eval()) / kBlockNodes)
+                                : static_cast<int>(b);
     }
     const auto n = size();
     mass.assign_zero(n);
@@ -91,11 +143,11 @@ struct Grid {
     force.assign_zero(n);
     velocity.assign_zero(n);
     velocity_new.assign_zero(n);
-    const auto block_count = static_cast<std::size_t>(blocks.prod());
     block_active.assign(block_count, 0);
     half_marked.assign(static_cast<std::size_t>(halves.prod()), 0);
-    last_active.assign(block_count, -(1 << 30));
-    resident.assign(block_count, 0);
+    const std::size_t stored = sparse ? slot_count / kBlockNodes : block_count;
+    last_active.assign(stored, -(1 << 30));
+    resident.assign(stored, 0);
     resident_blocks = 0;
     epoch = 0;
     peak_committed = active_at_peak = peak_active = 0;
@@ -104,20 +156,23 @@ struct Grid {
   }
   /// Node slots in storage. Sparse: the box padded up to whole blocks; the slots past the box
   /// (in the last block along an axis) hold zeros and never carry mass.
-  [[nodiscard]] std::size_t size() const {
-    return sparse ? static_cast<std::size_t>(blocks.prod()) * kBlockNodes : node_count();
-  }
+  [[nodiscard]] std::size_t size() const { return slot_count; }
   /// Nodes in the box.
   [[nodiscard]] std::size_t node_count() const { return static_cast<std::size_t>(nodes.prod()); }
   /// Bytes the box would take stored densely.
   [[nodiscard]] std::size_t box_bytes() const { return node_count() * kNodeBytes; }
   /// What node index i_d along axis d adds to a node's index (indices are separable: the index
   /// of node i is the sum over the axes).
-  /// (i >= 0: the box's nodes.)
   [[nodiscard]] int axis_offset(int d, int i) const {
-    const auto u = static_cast<unsigned>(i);
-    return static_cast<int>((u >> 2U) * static_cast<unsigned>(block_stride[d]) +
-                            (u & 3U) * static_cast<unsigned>(local_stride[d]));
+    return offset_table[d][static_cast<std::size_t>(i)];
+  }
+  /// Block coordinate x along axis d with its bits moved to the axis's Morton bit positions.
+  [[nodiscard]] long spread(int d, int x) const {
+    long out = 0;
+    for (std::size_t k = 0; k < bit_position[d].size(); ++k) {
+      out |= static_cast<long>((x >> k) & 1) << bit_position[d][k];
+    }
+    return out;
   }
   [[nodiscard]] int linear(const Index<D>& i) const {
     int n = 0;
@@ -133,11 +188,14 @@ struct Grid {
       }
       return i;
     }
-    int block = linear_index / kBlockNodes;
+    const long block = linear_index / kBlockNodes;
     int local = linear_index % kBlockNodes;
     for (int d = D - 1; d >= 0; --d) {
-      i[d] = (block % blocks[d]) * kBlock + local % kBlock;
-      block /= blocks[d];
+      int b = 0;  // de-interleave the Morton index
+      for (std::size_t k = 0; k < bit_position[d].size(); ++k) {
+        b |= static_cast<int>((block >> bit_position[d][k]) & 1) << k;
+      }
+      i[d] = b * kBlock + local % kBlock;
       local /= kBlock;
     }
     return i;
@@ -155,14 +213,18 @@ struct Grid {
   Index<D> blocks = Index<D>::Ones();        ///< blocks per axis
   Index<D> halves = Index<D>::Ones();        ///< half-blocks per axis
   bool sparse = false;                       ///< the layout (see the struct's comment)
-  Index<D> local_stride = Index<D>::Ones();  ///< axis_offset(): (i % 4) local_stride
-  Index<D> block_stride = Index<D>::Ones();  ///<   + (i / 4) block_stride
+  std::size_t slot_count = 0;                ///< size()
+  Index<D> local_stride = Index<D>::Ones();  ///< dense: the strides; sparse: within a block
+  std::vector<int> offset_table[D];          ///< axis_offset(d, i)
+  std::vector<int> bit_position[D];          ///< sparse: where bit k of a block coordinate goes
+  std::vector<int> storage_block;            ///< block (index order) -> its place in storage
   std::vector<std::uint8_t> block_active;    ///< this step's flags
   std::vector<std::uint8_t> half_marked;     ///< this step's particles' half-blocks
   std::vector<int> active_blocks;            ///< this step's blocks, in index order
   std::vector<int> previous_blocks;          ///< the step before's (clear_previous() zeroes them)
-  std::vector<int> last_active;              ///< the last step (epoch) each block was active
-  std::vector<std::uint8_t> resident;        ///< may the block's pages hold memory?
+  // By place in storage (sparse: Morton order, holes included; dense: index order).
+  std::vector<int> last_active;        ///< the last step (epoch) each block was active
+  std::vector<std::uint8_t> resident;  ///< may the block's pages hold memory?
   std::size_t resident_blocks = 0;
   int epoch = 0;  ///< steps marked so far
   /// Sampled by release_idle(): the most memory the node arrays held, the active blocks' need
@@ -177,7 +239,7 @@ struct Grid {
   }
   /// The block holding a node.
   [[nodiscard]] int block_of(int node) const {
-    return sparse ? node / kBlockNodes : block_index((multi(node).array() / kBlock).matrix());
+    return block_index((multi(node).array() / kBlock).matrix());
   }
   /// Starts a step's marking: the last step's blocks become the previous ones.
   void begin_marking() {
@@ -224,9 +286,10 @@ struct Grid {
     for (std::size_t b = 0; b < block_active.size(); ++b) {
       if (block_active[b] == 0) continue;
       active_blocks.push_back(static_cast<int>(b));
-      last_active[b] = epoch;
-      if (resident[b] == 0) {
-        resident[b] = 1;
+      const auto s = static_cast<std::size_t>(storage_block[b]);
+      last_active[s] = epoch;
+      if (resident[s] == 0) {
+        resident[s] = 1;
         ++resident_blocks;
       }
     }
@@ -237,7 +300,7 @@ struct Grid {
   template <class F>
   void for_each_run(int block, F&& f) const {
     if (sparse) {
-      f(block * kBlockNodes, kBlockNodes);
+      f(storage_block[static_cast<std::size_t>(block)] * kBlockNodes, kBlockNodes);
       return;
     }
     Index<D> b;
@@ -378,17 +441,15 @@ struct Stencil {
     for (int d = 0; d < D; ++d) {
       const double xg = (x[d] - g.origin[d]) * g.inv_h;
       Shape::weights(xg, half_width, base[d], w[d], dw[d]);
-      // Node base + k is one local step further per k, and crosses into the next block where
-      // (base + k) % 4 wraps to 0 (dense layout: block_stride = 4 local_stride, no jump).
-      const int first = g.axis_offset(d, base[d]);
-      const int local = g.local_stride[d];
-      const int jump = g.block_stride[d] - Grid<D>::kBlock * local;
-      const int within = base[d] & (Grid<D>::kBlock - 1);
       for (int k = 0; k < S; ++k) {
         dw[d][k] *= g.inv_h;
         dx[d][k] = (base[d] + k - xg) * g.h;
-        offset[d][k] = first + k * local + (within + k >= Grid<D>::kBlock ? jump : 0);
       }
+      if (!g.sparse) {  // dense: a multiple of the stride (no table lookup in the hot loops)
+        for (int k = 0; k < S; ++k) offset[d][k] = (base[d] + k) * g.local_stride[d];
+        continue;
+      }
+      for (int k = 0; k < S; ++k) offset[d][k] = g.axis_offset(d, base[d] + k);
     }
     row_contiguous = offset[D - 1][S - 1] - offset[D - 1][0] == S - 1;
   }

@@ -7,6 +7,7 @@
 #include <cstddef>
 #include <type_traits>
 #include <utility>
+#include <vector>
 
 namespace mpm {
 
@@ -44,13 +45,12 @@ class PageBuffer {
   std::size_t bytes_ = 0;
 };
 
-/// A fixed-size array of plain values (double, Eigen fixed-size vectors of doubles: all-zero
-/// bytes are 0.0, no destructor to run) over a PageBuffer, zero at assign_zero(): the part of
+/// A fixed-size array of plain values (int, double, Eigen fixed-size vectors of doubles: all-zero
+/// bytes are 0, no destructor to run) over a PageBuffer, zero at assign_zero(): the part of
 /// std::vector's interface the grid uses.
 template <class T>
 class NodeArray {
-  static_assert(std::is_trivially_destructible_v<T> && sizeof(T) % sizeof(double) == 0,
-                "node values must be plain doubles");
+  static_assert(std::is_trivially_destructible_v<T>, "node values must be plain data");
 
  public:
   using value_type = T;
@@ -75,5 +75,20 @@ class NodeArray {
   PageBuffer buffer_;
   std::size_t size_ = 0;
 };
+
+/// Compact row numbers for a few of a grid's nodes (a coupling's rows) without a grid-sized
+/// initialisation or reset: `rows` lists the nodes in row order and `row_of` (page-backed:
+/// memory only for the pages of nodes that have had a row) points back; an entry is valid when
+/// rows[row_of[node]] == node, so forgetting every row is clearing `rows`. Returns the node's
+/// row, giving it the next one if it has none.
+inline int node_row(NodeArray<int>& row_of, std::vector<int>& rows, int node) {
+  int& r = row_of[static_cast<std::size_t>(node)];
+  if (static_cast<std::size_t>(r) < rows.size() && rows[static_cast<std::size_t>(r)] == node) {
+    return r;
+  }
+  r = static_cast<int>(rows.size());
+  rows.push_back(node);
+  return r;
+}
 
 }  // namespace mpm
