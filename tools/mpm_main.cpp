@@ -34,6 +34,12 @@ int main(int argc, char** argv) {
   run->add_flag("--overwrite", run_options.overwrite, "Replace an earlier result in OUTDIR")
       ->excludes(resume_option);
   run->add_flag("-q,--quiet", run_options.quiet, "No progress display");
+  int resolution = 1;
+  run->add_option("--resolution", resolution,
+                  "Refine the scene K times: grid spacing / K, particles per cell kept (K^D times "
+                  "the particles); a resumed run keeps its own")
+      ->check(CLI::Range(1, 16))
+      ->excludes(resume_option);
   add_threads(run);
 
   mpm::tools::PrepArgs prep_args;
@@ -157,11 +163,12 @@ int main(int argc, char** argv) {
         run_options.out_dir = resume_dir;
         run_options.resume = true;
         scene_file = mpm::checkpoint_scene(resume_dir).string();
+        resolution = mpm::checkpoint_resolution(resume_dir);
       } else if (scene_file.empty()) {
         std::cerr << "mpm run: give a scene and -o OUTDIR, or --resume OUTDIR\n";
         return mpm::kExitBadInput;
       }
-      const mpm::Scene scene = mpm::load_scene(scene_file);
+      const mpm::Scene scene = mpm::load_scene(scene_file, resolution);
       return mpm::run_scene(scene, run_options);
     } catch (const std::runtime_error& e) {  // a SceneError, or no readable checkpoint
       std::cerr << "mpm: " << e.what() << '\n';

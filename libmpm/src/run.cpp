@@ -5,6 +5,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <charconv>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -350,6 +351,20 @@ std::filesystem::path checkpoint_scene(const std::filesystem::path& out_dir) {
   return read_checkpoint(out_dir / "checkpoint.h5", true).text("run.scene");
 }
 
+int checkpoint_resolution(const std::filesystem::path& out_dir) {
+  const Checkpoint c = read_checkpoint(out_dir / "checkpoint.h5", true);
+  const auto it = c.texts.find("run.resolution");  // absent in checkpoints before the option
+  if (it == c.texts.end()) return 1;
+  int k = 0;
+  const auto [end, error] =
+      std::from_chars(it->second.data(), it->second.data() + it->second.size(), k);
+  if (error != std::errc() || end != it->second.data() + it->second.size() || k < 1) {
+    throw std::runtime_error((out_dir / "checkpoint.h5").string() + ": run.resolution '" +
+                             it->second + "' is not a positive integer");
+  }
+  return k;
+}
+
 int run_scene(const Scene& scene, const RunOptions& options) {
   namespace fs = std::filesystem;
   const fs::path& out = options.out_dir;
@@ -450,6 +465,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
     sim->save_state(c);
     c.texts["run.scene"] = fs::absolute(scene.file).string();
     c.texts["run.scene_digest"] = digest;
+    c.texts["run.resolution"] = std::to_string(scene.resolution);
     c.reals["run.time"] = {t,
                            since_history,
                            next_output,
@@ -566,6 +582,8 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       {"name", scene.name},
       {"status", failure ? "failed" : "completed"},
       {"dimension", scene.dimension},
+      {"resolution", scene.resolution},
+      {"spacing", scene.spacing},
       {"shape_function", std::string(to_string(scene.shape))},
       {"particles", sim->particle_count()},
       {"steps", step},

@@ -809,7 +809,7 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
   return scene;
 }
 
-Scene load_scene(const std::filesystem::path& file) {
+Scene load_scene(const std::filesystem::path& file, int resolution) {
   std::error_code ec;
   if (!std::filesystem::is_regular_file(file, ec)) {
     throw SceneError(file.string() + ": scene file does not exist or is not a file");
@@ -828,7 +828,36 @@ Scene load_scene(const std::filesystem::path& file) {
     throw SceneError(file.string() +
                      ": invalid JSON: " + (tag == std::string::npos ? what : what.substr(tag + 2)));
   }
-  return parse_scene(doc, file);
+  if (resolution < 1)
+    throw SceneError(file.string() + ": resolution " + std::to_string(resolution) +
+                     " is not a positive integer");
+  if (resolution > 1) {
+    // Only well-formed values are refined: parse_scene reports anything else as it stands.
+    const double k = resolution;
+    if (doc.is_object() && doc.contains("grid") && doc["grid"].is_object() &&
+        doc["grid"].contains("spacing") && doc["grid"]["spacing"].is_number()) {
+      doc["grid"]["spacing"] = doc["grid"]["spacing"].get<double>() / k;
+    }
+    if (doc.is_object() && doc.contains("time") && doc["time"].is_object() &&
+        doc["time"].contains("dt") && doc["time"]["dt"].is_number()) {
+      doc["time"]["dt"] = doc["time"]["dt"].get<double>() / k;
+    }
+    if (doc.is_object() && doc.contains("walls") && doc["walls"].is_array()) {
+      for (json& wall : doc["walls"]) {
+        if (!wall.is_object() || !wall.contains("surface") || !wall["surface"].is_object())
+          continue;
+        json& surface = wall["surface"];
+        if (!surface.contains("cache") || !surface["cache"].is_string()) continue;
+        std::filesystem::path cache = surface["cache"].get<std::string>();
+        cache.replace_filename(cache.stem().string() + "_r" + std::to_string(resolution) +
+                               cache.extension().string());
+        surface["cache"] = cache.string();
+      }
+    }
+  }
+  Scene scene = parse_scene(doc, file);
+  scene.resolution = resolution;
+  return scene;
 }
 
 std::string_view to_string(ShapeKind kind) {

@@ -8,6 +8,7 @@
 #include <cmath>
 #include <numeric>
 #include <sstream>
+#include <stdexcept>
 
 #include <tbb/blocked_range.h>
 #include <tbb/combinable.h>
@@ -132,6 +133,14 @@ void Solver<D>::choose_grid_storage(const Index<D>& cells) {
     for (const Vec<D>& x : particles.position) grid.mark(x);
     grid.finish_marking();
     sparse = 2 * grid.active_blocks.size() < grid.block_active.size();
+    if (sparse) {
+      try {
+        grid.resize(grid.origin, grid.h, cells + Index<D>::Constant(1 + 2 * pad), true);
+        return;
+      } catch (const std::runtime_error&) {  // beyond the sparse layout's index range
+        sparse = false;
+      }
+    }
   }
   grid.resize(grid.origin, grid.h, cells + Index<D>::Constant(1 + 2 * pad), sparse);
 }

@@ -23,6 +23,7 @@
 #include <nlohmann/json.hpp>
 
 #include "mpm/output.hpp"
+#include "mpm/run.hpp"
 #include "support/run_mpm.hpp"
 
 namespace fs = std::filesystem;
@@ -310,6 +311,34 @@ TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
   coupling = json::parse(read_text(out_dir_ / "summary.json")).at("coupling").at("floor");
   EXPECT_EQ(coupling.at("surface_nodes").get<int>(), 11);
   EXPECT_EQ(coupling.at("multipliers").get<int>(), 6);
+}
+
+TEST_F(CommandLine, ResolutionRefinesTheSceneAndAResumedRunKeepsIt) {
+  // The dual floor scene at twice the resolution: half the spacing, the same particles per cell
+  // (4 times the particles in 2D: the block's faces are on both lattices), the floor cut into
+  // segments of the finer h (1 m: 21 nodes).
+  json scene = scene_2d_dual_floor();
+  scene["bodies"][0]["shape"] = {{"type", "box"}, {"min", {0.3, 0.15}}, {"max", {0.7, 0.4}}};
+  write_scene(scene);
+  RunResult r = run_scene({"-j", "1"});
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const json coarse = json::parse(read_text(out_dir_ / "summary.json"));
+  r = run_scene({"-j", "1", "--overwrite", "--resolution", "2"});
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const json fine = json::parse(read_text(out_dir_ / "summary.json"));
+  EXPECT_EQ(coarse.at("resolution").get<int>(), 1);
+  EXPECT_EQ(fine.at("resolution").get<int>(), 2);
+  EXPECT_DOUBLE_EQ(fine.at("spacing").get<double>(), 0.5 * coarse.at("spacing").get<double>());
+  EXPECT_EQ(fine.at("particles").get<int>(), 4 * coarse.at("particles").get<int>());
+  EXPECT_EQ(fine.at("coupling").at("floor").at("surface_nodes").get<int>(), 21);
+  // The checkpoint remembers the refinement, so `--resume` continues the same run.
+  EXPECT_EQ(mpm::checkpoint_resolution(out_dir_), 2);
+  // Nonsense is refused before anything is written.
+  fs::remove_all(out_dir_);
+  r = run_scene({"--resolution", "0"});
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_TRUE(contains(r.err, "--resolution")) << r.err;
+  EXPECT_FALSE(fs::exists(out_dir_));
 }
 
 TEST_F(CommandLine, RejectsMultiplierRadiusOutOfRangeOrOnEnhancedWall) {

@@ -101,13 +101,20 @@ struct Grid {
         }
       }
     }
-    long slots = 1;
+    long last_block = 0;  // Morton index of the last block: the largest
+    for (int d = 0; d < D; ++d) last_block += spread(d, blocks[d] - 1);
+    const long slots = sparse ? (last_block + 1) * kBlockNodes : nodes.template cast<long>().prod();
+    if (slots > std::numeric_limits<int>::max()) {
+      throw std::runtime_error("grid: " + std::to_string(slots) +
+                               " node slots in the sparse layout exceed the index range; use "
+                               "\"storage\": \"dense\" or a larger spacing");
+    }
+    slot_count = static_cast<std::size_t>(slots);
     for (int d = D - 1, dense = 1, local = 1; d >= 0; --d) {
       local_stride[d] = sparse ? local : dense;
       dense *= nodes[d];
       local *= kBlock;
     }
-    long last_block = 0;  // Morton index of the last block: the largest
     for (int d = 0; d < D; ++d) {
       offset_table[d].resize(static_cast<std::size_t>(nodes[d]));
       for (int i = 0; i < nodes[d]; ++i) {
@@ -116,15 +123,7 @@ struct Grid {
                                       (i % kBlock) * local_stride[d])
                    : i * local_stride[d];
       }
-      last_block += spread(d, blocks[d] - 1);
     }
-    slots = sparse ? (last_block + 1) * kBlockNodes : nodes.template cast<long>().prod();
-    if (slots > std::numeric_limits<int>::max()) {
-      throw std::runtime_error("grid: " + std::to_string(slots) +
-                               " node slots in the sparse layout exceed the index range; use "
-                               "\"storage\": \"dense\" or a larger spacing");
-    }
-    slot_count = static_cast<std::size_t>(slots);
     const auto block_count = static_cast<std::size_t>(blocks.prod());
     storage_block.resize(block_count);
     for (std::size_t b = 0; b < block_count; ++b) {
@@ -154,8 +153,9 @@ struct Grid {
     active_blocks.clear();
     previous_blocks.clear();
   }
-  /// Node slots in storage. Sparse: the box padded up to whole blocks; the slots past the box
-  /// (in the last block along an axis) hold zeros and never carry mass.
+  /// Node slots in storage. Sparse: the box padded up to whole blocks and the block counts to
+  /// the Morton index range; the slots outside the box hold zeros and never carry mass (and,
+  /// never written, take no memory).
   [[nodiscard]] std::size_t size() const { return slot_count; }
   /// Nodes in the box.
   [[nodiscard]] std::size_t node_count() const { return static_cast<std::size_t>(nodes.prod()); }

@@ -106,6 +106,8 @@ struct Scene {
   int dimension = 3;
   Eigen::VectorXd box_min, box_max;  ///< the grid box; walls sit on its faces
   double spacing = 0.0;
+  /// The refinement `mpm run --resolution K` applied: the file's spacing (and fixed dt) / K.
+  int resolution = 1;
   GridStorage grid_storage = GridStorage::automatic;
   ShapeKind shape = ShapeKind::bspline2;
   UpdateScheme update = UpdateScheme::musl;
@@ -144,8 +146,11 @@ struct Scene {
   std::vector<DualWallSpec> dual_walls;
 };
 
-/// Parses and validates a scene file. Throws SceneError.
-Scene load_scene(const std::filesystem::path& file);
+/// Parses and validates a scene file. Throws SceneError. resolution K > 1 refines it first:
+/// grid spacing and a fixed time step divided by K (particles per cell, and so the particles'
+/// spacing, follow the grid; widths given in cells, such as a wall's default thickness of h,
+/// follow too), and each dual-grid wall's package cache is kept apart ("name_rK.h5").
+Scene load_scene(const std::filesystem::path& file, int resolution = 1);
 /// Same for an in-memory document; `origin` names it in messages.
 Scene parse_scene(const nlohmann::json& doc, const std::filesystem::path& origin);
 
