@@ -308,9 +308,9 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   const auto& w = st.w;
   const auto& dw = st.dw;
   const auto& dx = st.dx;
-  // Along the last axis a row's S nodes are adjacent in memory unless the row crosses a grid
-  // block: then their D S momentum (force) components are updated as one vector, with the
-  // per-node weights repeated per component.
+  // Along the last axis a row's S nodes are adjacent in memory (always in the dense layout; in
+  // the sparse one unless the row crosses a block): their D S momentum (force) components are
+  // then updated as one vector, with the per-node weights repeated per component.
   static_assert(sizeof(Vec<3>) == 3 * sizeof(double), "grid vectors must be packed");
   static constexpr int R = 3 * S;  // static: the lambda below uses it without a capture
   double w2[R], wx2[R], dw2[R];
@@ -328,6 +328,7 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   // array[row + k_offset[k]][a] += x_a u[3k + a] + y_a z[3k + a] over the row's S nodes (x, y
   // repeated per node so that the update is one vector expression when the row is contiguous).
   auto rows = [&](auto contiguous) {
+    constexpr bool kContiguous = decltype(contiguous)::value;
     auto add_row = [&](NodeArray<Vec<3>>& array, int row, const double(&x)[3], const double* u,
                        const double(&y)[3], const double* z) {
       double xr[R], yr[R];
@@ -335,7 +336,7 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
         xr[c] = x[c % 3];
         yr[c] = y[c % 3];
       }
-      if constexpr (decltype(contiguous)::value) {
+      if constexpr (kContiguous) {
         double* out = array[static_cast<std::size_t>(row + k_offset[0])].data();
         for (int c = 0; c < R; ++c) out[c] += xr[c] * u[c] + yr[c] * z[c];
       } else {
@@ -368,8 +369,10 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
         }
         add_row(grid.force, row, r, w2, t, dw2);
         const double wm = wij * m;
-        for (int k = 0; k < S; ++k)
-          grid.mass[static_cast<std::size_t>(row + k_offset[k])] += wm * w[2][k];
+        for (int k = 0; k < S; ++k) {
+          const int node = kContiguous ? row + k_offset[0] + k : row + k_offset[k];
+          grid.mass[static_cast<std::size_t>(node)] += wm * w[2][k];
+        }
       }
     }
   };
