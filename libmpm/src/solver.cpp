@@ -79,7 +79,8 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
     std::vector<std::pair<int, int>> ghosts;
     for (int n = 0; n < static_cast<int>(grid.size()); ++n) {
       Index<D> i = grid.multi(n);
-      if ((i.array() >= grid.nodes.array()).any()) continue;  // padding of the last blocks
+      if ((i.array() >= grid.nodes.array()).any())
+        continue;  // a slot outside the box (block padding)
       if (i[a] < lo || i[a] > hi) continue;
       if (i[a] == wall_index || wall.contact.separable) {
         nodes.push_back(n);
