@@ -162,8 +162,9 @@ int main(int argc, char** argv) {
       if (!resume_dir.empty()) {
         run_options.out_dir = resume_dir;
         run_options.resume = true;
-        scene_file = mpm::checkpoint_scene(resume_dir).string();
-        resolution = mpm::checkpoint_resolution(resume_dir);
+        const mpm::CheckpointOrigin origin = mpm::checkpoint_origin(resume_dir);
+        scene_file = origin.scene.string();
+        resolution = origin.resolution;
       } else if (scene_file.empty()) {
         std::cerr << "mpm run: give a scene and -o OUTDIR, or --resume OUTDIR\n";
         return mpm::kExitBadInput;

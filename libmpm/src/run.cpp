@@ -347,22 +347,19 @@ nlohmann::json phase_json(const PhaseTimes& p, double output) {
 
 }  // namespace
 
-std::filesystem::path checkpoint_scene(const std::filesystem::path& out_dir) {
-  return read_checkpoint(out_dir / "checkpoint.h5", true).text("run.scene");
-}
-
-int checkpoint_resolution(const std::filesystem::path& out_dir) {
+CheckpointOrigin checkpoint_origin(const std::filesystem::path& out_dir) {
   const Checkpoint c = read_checkpoint(out_dir / "checkpoint.h5", true);
+  CheckpointOrigin origin{c.text("run.scene"), 1};
   const auto it = c.texts.find("run.resolution");  // absent in checkpoints before the option
-  if (it == c.texts.end()) return 1;
-  int k = 0;
+  if (it == c.texts.end()) return origin;
+  int& k = origin.resolution;
   const auto [end, error] =
       std::from_chars(it->second.data(), it->second.data() + it->second.size(), k);
   if (error != std::errc() || end != it->second.data() + it->second.size() || k < 1) {
     throw std::runtime_error((out_dir / "checkpoint.h5").string() + ": run.resolution '" +
                              it->second + "' is not a positive integer");
   }
-  return k;
+  return origin;
 }
 
 int run_scene(const Scene& scene, const RunOptions& options) {

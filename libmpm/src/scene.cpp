@@ -833,14 +833,9 @@ Scene load_scene(const std::filesystem::path& file, int resolution) {
                      " is not a positive integer");
   if (resolution > 1) {
     // Only well-formed values are refined: parse_scene reports anything else as it stands.
-    const double k = resolution;
-    if (doc.is_object() && doc.contains("grid") && doc["grid"].is_object() &&
-        doc["grid"].contains("spacing") && doc["grid"]["spacing"].is_number()) {
-      doc["grid"]["spacing"] = doc["grid"]["spacing"].get<double>() / k;
-    }
-    if (doc.is_object() && doc.contains("time") && doc["time"].is_object() &&
-        doc["time"].contains("dt") && doc["time"]["dt"].is_number()) {
-      doc["time"]["dt"] = doc["time"]["dt"].get<double>() / k;
+    for (const char* key : {"/grid/spacing", "/time/dt"}) {
+      const json::json_pointer at(key);
+      if (doc.contains(at) && doc[at].is_number()) doc[at] = doc[at].get<double>() / resolution;
     }
     if (doc.is_object() && doc.contains("walls") && doc["walls"].is_array()) {
       for (json& wall : doc["walls"]) {

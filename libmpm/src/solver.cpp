@@ -60,7 +60,7 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
     body_acceleration_.push_back(gravity_ + to_vec<D>(body.body_force));
   }
   fill_bodies();
-  choose_grid_storage(cells);
+  choose_grid_storage();
 
   const double mean_mass =
       particles.size() ? std::accumulate(particles.mass.begin(), particles.mass.end(), 0.0) /
@@ -126,24 +126,23 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
 }
 
 template <int D>
-void Solver<D>::choose_grid_storage(const Index<D>& cells) {
+void Solver<D>::choose_grid_storage() {
   bool sparse = scene_.grid_storage == GridStorage::sparse;
-  if (scene_.grid_storage == GridStorage::automatic) {
+  const bool automatic = scene_.grid_storage == GridStorage::automatic;
+  if (automatic) {
     // The blocks the bodies reach (the grid's own marking, on the dense grid just made).
     grid.begin_marking();
     for (const Vec<D>& x : particles.position) grid.mark(x);
     grid.finish_marking();
     sparse = 2 * grid.active_blocks.size() < grid.block_active.size();
-    if (sparse) {
-      try {
-        grid.resize(grid.origin, grid.h, cells + Index<D>::Constant(1 + 2 * pad), true);
-        return;
-      } catch (const std::runtime_error&) {  // beyond the sparse layout's index range
-        sparse = false;
-      }
-    }
   }
-  grid.resize(grid.origin, grid.h, cells + Index<D>::Constant(1 + 2 * pad), sparse);
+  const Index<D> nodes = grid.nodes;
+  try {
+    grid.resize(grid.origin, grid.h, nodes, sparse);
+  } catch (const std::runtime_error&) {  // beyond the sparse layout's index range
+    if (!automatic) throw;
+    grid.resize(grid.origin, grid.h, nodes, false);
+  }
 }
 
 template <int D>

@@ -332,7 +332,7 @@ TEST_F(CommandLine, ResolutionRefinesTheSceneAndAResumedRunKeepsIt) {
   EXPECT_EQ(fine.at("particles").get<int>(), 4 * coarse.at("particles").get<int>());
   EXPECT_EQ(fine.at("coupling").at("floor").at("surface_nodes").get<int>(), 21);
   // The checkpoint remembers the refinement, so `--resume` continues the same run.
-  EXPECT_EQ(mpm::checkpoint_resolution(out_dir_), 2);
+  EXPECT_EQ(mpm::checkpoint_origin(out_dir_).resolution, 2);
   // Nonsense is refused before anything is written.
   fs::remove_all(out_dir_);
   r = run_scene({"--resolution", "0"});

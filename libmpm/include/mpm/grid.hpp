@@ -125,16 +125,15 @@ struct Grid {
       }
     }
     const auto block_count = static_cast<std::size_t>(blocks.prod());
-    storage_block.resize(block_count);
-    for (std::size_t b = 0; b < block_count; ++b) {
+    storage_block.resize(sparse ? block_count : 0);  // the dense layout has no use for it
+    for (std::size_t b = 0; b < storage_block.size(); ++b) {
       Index<D> c;
       auto rest = static_cast<int>(b);
       for (int d = D - 1; d >= 0; --d) {
         c[d] = rest % blocks[d];
         rest /= blocks[d];
       }
-      storage_block[b] = sparse ? static_cast<int>(linear((c * kBlock).eval()) / kBlockNodes)
-                                : static_cast<int>(b);
+      storage_block[b] = linear((c * kBlock).eval()) / kBlockNodes;
     }
     const auto n = size();
     mass.assign_zero(n);
@@ -144,10 +143,9 @@ struct Grid {
     velocity_new.assign_zero(n);
     block_active.assign(block_count, 0);
     half_marked.assign(static_cast<std::size_t>(halves.prod()), 0);
-    const std::size_t stored = sparse ? slot_count / kBlockNodes : block_count;
+    const std::size_t stored = sparse ? slot_count / kBlockNodes : 0;  // pages: sparse only
     last_active.assign(stored, -(1 << 30));
     resident.assign(stored, 0);
-    resident_blocks = 0;
     epoch = 0;
     peak_committed = active_at_peak = peak_active = 0;
     active_blocks.clear();
@@ -217,16 +215,15 @@ struct Grid {
   Index<D> local_stride = Index<D>::Ones();  ///< dense: the strides; sparse: within a block
   std::vector<int> offset_table[D];          ///< axis_offset(d, i)
   std::vector<int> bit_position[D];          ///< sparse: where bit k of a block coordinate goes
-  std::vector<int> storage_block;            ///< block (index order) -> its place in storage
+  std::vector<int> storage_block;            ///< sparse: block (index order) -> place in storage
   std::vector<std::uint8_t> block_active;    ///< this step's flags
   std::vector<std::uint8_t> half_marked;     ///< this step's particles' half-blocks
   std::vector<int> active_blocks;            ///< this step's blocks, in index order
   std::vector<int> previous_blocks;          ///< the step before's (clear_previous() zeroes them)
-  // By place in storage (sparse: Morton order, holes included; dense: index order).
+  // Sparse only, by place in storage (Morton order, holes included).
   std::vector<int> last_active;        ///< the last step (epoch) each block was active
   std::vector<std::uint8_t> resident;  ///< may the block's pages hold memory?
-  std::size_t resident_blocks = 0;
-  int epoch = 0;  ///< steps marked so far
+  int epoch = 0;                       ///< steps marked so far
   /// Sampled by release_idle(): the most memory the node arrays held, the active blocks' need
   /// then, and the most the active blocks needed at any sample.
   std::size_t peak_committed = 0, active_at_peak = 0, peak_active = 0;
@@ -286,12 +283,10 @@ struct Grid {
     for (std::size_t b = 0; b < block_active.size(); ++b) {
       if (block_active[b] == 0) continue;
       active_blocks.push_back(static_cast<int>(b));
+      if (!sparse) continue;
       const auto s = static_cast<std::size_t>(storage_block[b]);
       last_active[s] = epoch;
-      if (resident[s] == 0) {
-        resident[s] = 1;
-        ++resident_blocks;
-      }
+      resident[s] = 1;
     }
   }
   /// Calls f(first, count) for each run of nodes of `block` contiguous in memory: sparse, one,
@@ -392,10 +387,7 @@ struct Grid {
       all &= release_in(force, b);
       all &= release_in(velocity, b);
       all &= release_in(velocity_new, b);
-      if (all) {
-        resident[b] = 0;
-        --resident_blocks;
-      }
+      if (all) resident[b] = 0;
     }
   }
   /// Bytes of the node arrays backed by memory: the pages that overlap a block that may hold

@@ -29,11 +29,14 @@ enum ExitCode : int { kExitOk = 0, kExitBadInput = 2, kExitFault = 3, kExitIo = 
 /// an ExitCode.
 int run_scene(const Scene& scene, const RunOptions& options);
 
-/// The refinement (`mpm run --resolution`) of the run whose checkpoint is in out_dir (1 for a
-/// checkpoint written before the option).
-int checkpoint_resolution(const std::filesystem::path& out_dir);
-/// The scene file a checkpoint in out_dir was written for (for `mpm run --resume OUTDIR`).
-/// Throws std::runtime_error naming the file when there is no readable checkpoint.
-std::filesystem::path checkpoint_scene(const std::filesystem::path& out_dir);
+/// What a checkpoint in out_dir was written for (for `mpm run --resume OUTDIR`): the scene file
+/// and its refinement (`mpm run --resolution`; 1 for a checkpoint written before the option),
+/// read from the file once. Throws std::runtime_error naming the file when there is no
+/// readable checkpoint.
+struct CheckpointOrigin {
+  std::filesystem::path scene;
+  int resolution = 1;
+};
+CheckpointOrigin checkpoint_origin(const std::filesystem::path& out_dir);
 
 }  // namespace mpm

@@ -213,7 +213,7 @@ class Solver final : public Simulation {
   void constrain_sdf_walls(NodeArray<Vec<D>>& velocity, bool record);
   void fill_bodies();
   /// Grid storage for the scene (GridStorage): resizes the grid, after fill_bodies().
-  void choose_grid_storage(const Index<D>& cells);
+  void choose_grid_storage();
   void bin_particles_into_slabs();
 
   Scene scene_;
