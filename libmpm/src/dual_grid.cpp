@@ -559,7 +559,10 @@ void Solver<D>::layer_couple(bool remapped) {
         }
         return row;
       };
-      std::vector<Eigen::Triplet<double>> ga, ba;
+      std::vector<Eigen::Triplet<double>>& ga = w.grid_entries;
+      std::vector<Eigen::Triplet<double>>& ba = w.layer_entries;
+      ga.clear();
+      ba.clear();
       for (int mu = 0; mu + 1 < static_cast<int>(w.multiplier_first.size()); ++mu) {
         bool carried = false;  // a Phi node of the multiplier carries mass
         for (int j = w.multiplier_first[mu]; j < w.multiplier_first[mu + 1] && !carried; ++j) {
@@ -593,10 +596,8 @@ void Solver<D>::layer_couple(bool remapped) {
       }
       const auto k = static_cast<Eigen::Index>(w.active_multipliers.size());
       if (k == 0) continue;
-      w.grid_active.resize(static_cast<Eigen::Index>(w.grid_rows.size()), k);
-      w.grid_active.setFromTriplets(ga.begin(), ga.end());
-      w.boundary_active.resize(static_cast<Eigen::Index>(w.layer_rows.size()), k);
-      w.boundary_active.setFromTriplets(ba.begin(), ba.end());
+      assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k, ga);
+      assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k, ba);
       // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar) + shift I; every kept
       // row is above the coupling threshold, so its mass is positive. More multipliers than the
       // active nodes can satisfy makes S singular (the inf-sup problem of DESIGN.md): a relative
@@ -610,7 +611,8 @@ void Solver<D>::layer_couple(bool remapped) {
       for (Eigen::Index r = 0; r < w.inv_layer_mass.size(); ++r) {
         w.inv_layer_mass[r] = 1.0 / w.mass[w.layer_rows[static_cast<std::size_t>(r)]];
       }
-      Eigen::VectorXd diagonal = Eigen::VectorXd::Zero(k);
+      Eigen::VectorXd& diagonal = w.schur_diagonal;
+      diagonal.setZero(k);
       for (Eigen::Index c = 0; c < k; ++c) {
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_active, c); it; ++it) {
           diagonal[c] += it.value() * it.value() * w.inv_grid_mass[it.row()];
@@ -636,52 +638,65 @@ void Solver<D>::layer_couple(bool remapped) {
     if (w.active_multipliers.empty() || !w.schur_factored) continue;
 
     // Apply to the new velocities (and to the old ones, which FLIP differences against), or to
-    // the remapped velocities of MUSL; all D components in one solve.
+    // the remapped velocities of MUSL; all D components in one solve. The blocks are the wall's
+    // scratch (sized once per active set).
     using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
     auto solve = [&](NodeArray<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
       const auto ng = static_cast<Eigen::Index>(w.grid_rows.size());
       const auto nl = static_cast<Eigen::Index>(w.layer_rows.size());
-      Block a(ng, D), b(nl, D);
+      const Eigen::Index k = w.grid_active.cols();
+      Block& a = w.grid_block;
+      Block& b = w.layer_block;
+      a.resize(ng, D);
+      b.resize(nl, D);
+      w.gap.resize(k, D);
+      w.lambda.resize(k, D);
+      w.residual.resize(k, D);
+      w.update.resize(k, D);
+      w.solve_work.resize(k, D);
       for (Eigen::Index r = 0; r < ng; ++r) a.row(r) = va[w.grid_rows[r]].transpose();
       for (Eigen::Index r = 0; r < nl; ++r) b.row(r) = valpha[w.layer_rows[r]].transpose();
-      const Block gap = w.grid_active.transpose() * a - w.boundary_active.transpose() * b;
+      w.gap.noalias() = w.grid_active.transpose() * a;
+      w.gap.noalias() -= w.boundary_active.transpose() * b;
       // The D columns are independent solves with one factorisation (whose solve only reads
       // it): one per core.
-      auto factor_solve = [&](const Block& rhs) {
-        Block x(rhs.rows(), D);
-        tbb::parallel_for(0, D, [&](int d) { x.col(d) = w.schur->solve(rhs.col(d)); });
-        return x;
+      auto factor_solve = [&](const Block& rhs, Block& x) {
+        tbb::parallel_for(
+            0, D, [&](int d) { ldlt_solve(*w.schur, rhs.col(d), x.col(d), w.solve_work.col(d)); });
       };
-      Block lambda = factor_solve(gap);
+      factor_solve(w.gap, w.lambda);
       if (w.schur_refine) {
         // x += F^-1 (gap - S x) while refine() allows (to an update below 1e-13 of x);
         // unconverged (the masses moved too far from the factorised step's), factorise this
-        // step's S.
-        auto apply = [&](const Block& x) {
-          Block y = w.grid_active.transpose() *
-                    (w.inv_grid_mass.asDiagonal() * (w.grid_active * x)).eval();
+        // step's S. The products run through a and b, free by now.
+        auto apply = [&](const Block& x, Block& y) {
+          a.noalias() = w.grid_active * x;
+          a = w.inv_grid_mass.asDiagonal() * a;
+          y.noalias() = w.grid_active.transpose() * a;
           if (mortar) {
-            y += w.boundary_active.transpose() *
-                 (w.inv_layer_mass.asDiagonal() * (w.boundary_active * x)).eval();
+            b.noalias() = w.boundary_active * x;
+            b = w.inv_layer_mass.asDiagonal() * b;
+            y.noalias() += w.boundary_active.transpose() * b;
           }
-          return Block(y + w.schur_shift * x);
+          y += w.schur_shift * x;
         };
-        if (!refine(gap, lambda, apply, factor_solve, w.refinements)) {  // sparse_pattern.hpp
+        if (!refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
+                    w.update)) {  // sparse_pattern.hpp
           if (!factorise_schur(w, mortar)) return;
           w.schur_refine = false;
-          lambda = factor_solve(gap);
+          factor_solve(w.gap, w.lambda);
         }
       }
-      const Block da = w.grid_active * lambda;
+      a.noalias() = w.grid_active * w.lambda;
       for (Eigen::Index r = 0; r < ng; ++r) {
         const int n = w.grid_rows[r];
-        va[n] -= da.row(r).transpose() / grid.mass[n];
+        va[n] -= a.row(r).transpose() / grid.mass[n];
       }
       if (mortar) {
-        const Block db = w.boundary_active * lambda;
+        b.noalias() = w.boundary_active * w.lambda;
         for (Eigen::Index r = 0; r < nl; ++r) {
           const int n = w.layer_rows[r];
-          valpha[n] += db.row(r).transpose() / w.mass[n];
+          valpha[n] += b.row(r).transpose() / w.mass[n];
         }
       }
     };

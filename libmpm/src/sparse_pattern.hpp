@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <vector>
 
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
@@ -25,8 +26,62 @@ inline std::size_t pattern_hash(const Eigen::SparseMatrix<double>& m) {
   return hash;
 }
 
-/// Refinement passes x += solve(b - apply(x)) from the x in hand: `apply` multiplies by this
-/// step's matrix and `solve` applies the factorisation in hand (an earlier step's). Each pass
+/// Sets m to the rows x cols matrix of `entries`, which list the columns in order (each
+/// column's rows in any order, no row twice in a column), reusing m's storage: unlike
+/// setFromTriplets(), no allocation once m has held this many columns and entries.
+inline void assign_by_columns(Eigen::SparseMatrix<double>& m, Eigen::Index rows, Eigen::Index cols,
+                              const std::vector<Eigen::Triplet<double>>& entries) {
+  m.resize(rows, cols);  // keeps the column array when the column count is the same
+  m.resizeNonZeros(static_cast<Eigen::Index>(entries.size()));  // keeps the capacity
+  int* outer = m.outerIndexPtr();
+  int* inner = m.innerIndexPtr();
+  double* value = m.valuePtr();
+  std::fill(outer, outer + cols + 1, 0);
+  for (std::size_t e = 0; e < entries.size(); ++e) {
+    inner[e] = entries[e].row();
+    value[e] = entries[e].value();
+    ++outer[entries[e].col() + 1];
+  }
+  for (Eigen::Index c = 0; c < cols; ++c) {
+    outer[c + 1] += outer[c];
+    // Rows in increasing order within the column, as Eigen's algorithms expect (insertion
+    // sort: a column holds a stencil's few rows).
+    for (int e = outer[c] + 1; e < outer[c + 1]; ++e) {
+      const int row = inner[e];
+      const double v = value[e];
+      int f = e;
+      for (; f > outer[c] && inner[f - 1] > row; --f) {
+        inner[f] = inner[f - 1];
+        value[f] = value[f - 1];
+      }
+      inner[f] = row;
+      value[f] = v;
+    }
+  }
+}
+
+/// x = A^-1 b with the factorisation in `solver`, as solver.solve(b) computes it (the same
+/// operations in the same order), without its temporaries: `work` is scratch of b's size.
+inline void ldlt_solve(const SparseLdlt& solver, Eigen::Ref<const Eigen::VectorXd> b,
+                       Eigen::Ref<Eigen::VectorXd> x, Eigen::Ref<Eigen::VectorXd> work) {
+  if (solver.permutationP().size() > 0) {
+    work.noalias() = solver.permutationP() * b;
+  } else {
+    work = b;
+  }
+  if (solver.matrixL().nestedExpression().nonZeros() > 0) solver.matrixL().solveInPlace(work);
+  if (solver.diagonal().size() > 0) work.array() *= solver.diagonal().array().inverse();
+  if (solver.matrixL().nestedExpression().nonZeros() > 0) solver.matrixU().solveInPlace(work);
+  if (solver.permutationPinv().size() > 0) {
+    x.noalias() = solver.permutationPinv() * work;
+  } else {
+    x = work;
+  }
+}
+
+/// Refinement passes x += solve(b - apply(x)) from the x in hand: `apply(x, y)` sets y to this
+/// step's matrix times x and `solve(r, dx)` applies the factorisation in hand (an earlier
+/// step's) to r; `residual` and `update` are scratch of b's shape. Each pass
 /// shrinks the error by about the relative change of the matrix since the factorised step (the
 /// rate q, estimated as the largest ratio of successive updates seen); in a flow whose masses
 /// change fast that is slow, and a factorisation costs about as much as 10-20 passes, so
@@ -38,26 +93,29 @@ inline std::size_t pattern_hash(const Eigen::SparseMatrix<double>& m) {
 /// 1e-5, the update of the second pass is ~1e-10 of x and the error it leaves ~1e-15). The caller
 /// factorises when this returns false.
 template <class Rhs, class Apply, class Solve>
-bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& passes) {
+bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& passes, Rhs& residual,
+            Rhs& update) {
   constexpr int kMaxPasses = 6;
   constexpr double kTolerance = 1e-13;
   double previous = x.norm();
   double q = 0.0;  // the contraction rate: the largest ratio of successive updates seen
   for (int pass = 1;; ++pass) {
-    const Rhs dx = solve(Rhs(b - apply(x)));
-    x += dx;
+    apply(x, residual);
+    residual = b - residual;
+    solve(residual, update);
+    x += update;
     ++passes;
-    const double update = dx.norm(), size = x.norm();
-    if (update <= kTolerance * size) return true;
-    const double rate = update / previous;
-    previous = update;
+    const double step = update.norm(), size = x.norm();
+    if (step <= kTolerance * size) return true;
+    const double rate = step / previous;
+    previous = step;
     if (!(rate < 0.5)) return false;  // stalled (or not a number)
     q = std::max(q, rate);
     // The first ratio compares the update with x itself, not with an update, and can fall short
     // of the rate: the error bound waits for the second.
-    if (pass >= 2 && q / (1.0 - q) * update <= kTolerance * size) return true;
+    if (pass >= 2 && q / (1.0 - q) * step <= kTolerance * size) return true;
     if (pass >= kMaxPasses) return false;
-    if (pass + std::log(kTolerance * size / update) / std::log(q) > kMaxPasses) return false;
+    if (pass + std::log(kTolerance * size / step) / std::log(q) > kMaxPasses) return false;
   }
 }
 
@@ -74,9 +132,10 @@ bool refined_solve(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
                    std::size_t& passes, std::size_t& factorizations) {
   x = solver.solve(b);
   if (!refine) return true;
-  const auto product = [&](const Rhs& y) { return Rhs(m * y); };
-  const auto factor = [&](const Rhs& r) { return Rhs(solver.solve(r)); };
-  if (mpm::refine(b, x, product, factor, passes)) return true;
+  const auto product = [&](const Rhs& y, Rhs& out) { out = m * y; };
+  const auto factor = [&](const Rhs& r, Rhs& out) { out = solver.solve(r); };
+  Rhs residual, update;
+  if (mpm::refine(b, x, product, factor, passes, residual, update)) return true;
   solver.factorize(m);
   base = m;
   ++factorizations;

@@ -27,7 +27,12 @@ struct AlphaStencil {
   Vec<D> dN[6];
 };
 
-using SparseLdlt = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
+/// Eigen's sparse LDL^T, with read access to D (its vectorD() returns a copy: an allocation
+/// per solve in ldlt_solve(), sparse_pattern.hpp).
+class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
+ public:
+  [[nodiscard]] const Eigen::VectorXd& diagonal() const { return m_diag; }
+};
 
 /// Per-step state of the Enhanced velocity field method (enhanced.cpp). Compact indices: the
 /// standard-grid nodes the layer's particles reach ("near" rows), the free boundary-grid nodes
@@ -144,7 +149,14 @@ struct DualWall {
   bool schur_refine = false;           ///< this step's S is solved by refinement
   std::size_t factorizations = 0;      ///< Schur factorisations so far (for benchmarks)
   std::size_t refinements = 0;         ///< refinement passes against an earlier factorisation
-  double min_cell_size = 0.0;          ///< for the CFL limit
+  /// The coupling's scratch, kept from step to step so that a step that does not factorise
+  /// allocates nothing (issue 9): the active coupling's entries, S's diagonal, and the solve's
+  /// blocks (one row per kept row or active multiplier, one column per component).
+  std::vector<Eigen::Triplet<double>> grid_entries, layer_entries;
+  Eigen::VectorXd schur_diagonal;
+  Eigen::Matrix<double, Eigen::Dynamic, D> grid_block, layer_block, gap, lambda, residual, update,
+      solve_work;
+  double min_cell_size = 0.0;  ///< for the CFL limit
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
   EnhancedState<D> enh;
