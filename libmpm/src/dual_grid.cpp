@@ -596,8 +596,10 @@ void Solver<D>::layer_couple(bool remapped) {
       }
       const auto k = static_cast<Eigen::Index>(w.active_multipliers.size());
       if (k == 0) continue;
-      assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k, ga);
-      assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k, ba);
+      assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k, ga,
+                        w.assembly_work);
+      assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k, ba,
+                        w.assembly_work);
       // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar) + shift I; every kept
       // row is above the coupling threshold, so its mass is positive. More multipliers than the
       // active nodes can satisfy makes S singular (the inf-sup problem of DESIGN.md): a relative

@@ -26,37 +26,42 @@ inline std::size_t pattern_hash(const Eigen::SparseMatrix<double>& m) {
   return hash;
 }
 
-/// Sets m to the rows x cols matrix of `entries`, which list the columns in order (each
-/// column's rows in any order, no row twice in a column), reusing m's storage: unlike
-/// setFromTriplets(), no allocation once m has held this many columns and entries.
+/// Sets m to the rows x cols matrix of `entries` (no (row, column) twice), reusing m's storage
+/// and `work` (scratch): unlike setFromTriplets(), no allocation once m has held this many
+/// columns and entries. Linear in the entries, rows and columns: the entries are bucketed by
+/// row and then dealt to their columns, so each column comes out in increasing row order, as
+/// Eigen's algorithms expect.
 inline void assign_by_columns(Eigen::SparseMatrix<double>& m, Eigen::Index rows, Eigen::Index cols,
-                              const std::vector<Eigen::Triplet<double>>& entries) {
-  m.resize(rows, cols);  // keeps the column array when the column count is the same
-  m.resizeNonZeros(static_cast<Eigen::Index>(entries.size()));  // keeps the capacity
+                              const std::vector<Eigen::Triplet<double>>& entries,
+                              std::vector<int>& work) {
+  const auto nnz = static_cast<Eigen::Index>(entries.size());
+  m.resize(rows, cols);   // keeps the column array when the column count is the same
+  m.resizeNonZeros(nnz);  // keeps the capacity
+  work.assign(static_cast<std::size_t>(rows + 1 + nnz + cols), 0);
+  int* row_start = work.data();        // rows + 1
+  int* by_row = row_start + rows + 1;  // nnz entry numbers, grouped by row
+  int* next = by_row + nnz;            // cols: each column's next free slot
   int* outer = m.outerIndexPtr();
   int* inner = m.innerIndexPtr();
   double* value = m.valuePtr();
   std::fill(outer, outer + cols + 1, 0);
-  for (std::size_t e = 0; e < entries.size(); ++e) {
-    inner[e] = entries[e].row();
-    value[e] = entries[e].value();
-    ++outer[entries[e].col() + 1];
+  for (const auto& t : entries) {
+    ++row_start[t.row() + 1];
+    ++outer[t.col() + 1];
   }
+  for (Eigen::Index r = 0; r < rows; ++r) row_start[r + 1] += row_start[r];
   for (Eigen::Index c = 0; c < cols; ++c) {
     outer[c + 1] += outer[c];
-    // Rows in increasing order within the column, as Eigen's algorithms expect (insertion
-    // sort: a column holds a stencil's few rows).
-    for (int e = outer[c] + 1; e < outer[c + 1]; ++e) {
-      const int row = inner[e];
-      const double v = value[e];
-      int f = e;
-      for (; f > outer[c] && inner[f - 1] > row; --f) {
-        inner[f] = inner[f - 1];
-        value[f] = value[f - 1];
-      }
-      inner[f] = row;
-      value[f] = v;
-    }
+    next[c] = outer[c];
+  }
+  for (Eigen::Index e = 0; e < nnz; ++e) {
+    by_row[row_start[entries[static_cast<std::size_t>(e)].row()]++] = static_cast<int>(e);
+  }
+  for (Eigen::Index k = 0; k < nnz; ++k) {  // by_row lists the entries by increasing row
+    const auto& t = entries[static_cast<std::size_t>(by_row[k])];
+    const int slot = next[t.col()]++;
+    inner[slot] = t.row();
+    value[slot] = t.value();
   }
 }
 

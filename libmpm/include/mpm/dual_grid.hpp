@@ -153,6 +153,7 @@ struct DualWall {
   /// allocates nothing (issue 9): the active coupling's entries, S's diagonal, and the solve's
   /// blocks (one row per kept row or active multiplier, one column per component).
   std::vector<Eigen::Triplet<double>> grid_entries, layer_entries;
+  std::vector<int> assembly_work;
   Eigen::VectorXd schur_diagonal;
   Eigen::Matrix<double, Eigen::Dynamic, D> grid_block, layer_block, gap, lambda, residual, update,
       solve_work;
