@@ -35,11 +35,7 @@
 namespace mpm {
 namespace {
 
-using Triplets = std::vector<Eigen::Triplet<double>>;
 using Sparse = Eigen::SparseMatrix<double>;
-
-/// Contact state of one Gamma multiplier in the active-set loop.
-enum class Contact : unsigned char { off, normal, stick, slip };
 
 }  // namespace
 
@@ -58,7 +54,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
 
   // Candidate alpha columns: free nodes (not on Phi) with mass; candidates are numbered first
   // and renumbered after the dependence check.
-  std::vector<int> candidates;
+  std::vector<int>& candidates = e.candidates;
+  candidates.clear();
   for (std::size_t n = 0; n < w.mass.size(); ++n) {
     if (w.layer->node_on_interface[static_cast<Eigen::Index>(n)] != 0) continue;
     if (w.mass[n] <= coupling_threshold_) continue;
@@ -68,7 +65,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
 
   // Cross mass m^{A,alpha}_IS = sum_p m_p N^A_I N^alpha_S over the layer's particles, on
   // standard-grid nodes above the mass threshold.
-  Triplets cross;
+  auto& cross = e.cross_entries;
+  cross.clear();
   dispatch_shape(scene_.shape, [&](auto shape) {
     using Shape = decltype(shape);
     for (std::size_t i = 0; i < layer_list_.size(); ++i) {
@@ -94,13 +92,14 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   // the enhancement at S once the standard grid has taken what it can represent. A node whose
   // K_SS is a small fraction of m^alpha_S adds (almost) nothing the standard grid does not have,
   // and its tiny effective mass would take large accelerations: drop it (v^alpha_S = 0).
-  std::vector<double> diag(candidates.size());
+  std::vector<double>& diag = e.candidate_diagonal;
+  diag.resize(candidates.size());
   for (std::size_t c = 0; c < candidates.size(); ++c) diag[c] = w.mass[candidates[c]];
   // The cross mass over every candidate column (duplicates summed), from which K_SS is read and
   // the kept columns are taken.
-  Sparse cross_candidates(static_cast<Eigen::Index>(e.a_rows.size()),
-                          static_cast<Eigen::Index>(candidates.size()));
-  cross_candidates.setFromTriplets(cross.begin(), cross.end());
+  Sparse& cross_candidates = e.cross_candidates;
+  assign_by_columns(cross_candidates, static_cast<Eigen::Index>(e.a_rows.size()),
+                    static_cast<Eigen::Index>(candidates.size()), cross, e.assembly_work);
   for (Eigen::Index c = 0; c < cross_candidates.outerSize(); ++c) {
     for (Sparse::InnerIterator it(cross_candidates, c); it; ++it) {
       diag[static_cast<std::size_t>(c)] -=
@@ -113,7 +112,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   // 1D bar it makes the contact chatter). The enhancement is kept where the wall cuts into cells
   // whose far nodes are empty, which is what it is for.
   const mpmgeom::Coupling& gamma = w.spec->package->wall_coupling;
-  std::vector<char> covered(candidates.size(), 0);
+  std::vector<char>& covered = e.covered;
+  covered.assign(candidates.size(), 0);
   for (std::size_t c = 0; c < candidates.size(); ++c) {
     if (scene_.drop_covered_enhancement && w.layer->node_on_wall[candidates[c]] != 0) {
       covered[c] = 1;
@@ -130,7 +130,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
       if (c >= 0) covered[static_cast<std::size_t>(c)] = 0;
     }
   }
-  std::vector<int> renumber(candidates.size(), -1);
+  std::vector<int>& renumber = e.renumber;
+  renumber.assign(candidates.size(), -1);
   e.dropped_dependent = 0;
   e.dropped_covered = 0;
   e.min_mass_ratio = 1.0;
@@ -151,14 +152,6 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     e.alpha_col_of[n] = renumber[c];
     e.alpha_cols.push_back(n);
   }
-  // Column selection candidates -> kept columns.
-  Triplets select;
-  for (std::size_t c = 0; c < candidates.size(); ++c) {
-    if (renumber[c] >= 0) select.emplace_back(static_cast<int>(c), renumber[c], 1.0);
-  }
-  Sparse selection(static_cast<Eigen::Index>(candidates.size()),
-                   static_cast<Eigen::Index>(e.alpha_cols.size()));
-  selection.setFromTriplets(select.begin(), select.end());
 
   // Multipliers in contact: those whose Gamma node carries boundary-grid mass (material in the
   // wall's own cells). Their R^A columns keep the nodes above the coupling threshold, rescaled
@@ -166,8 +159,12 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   e.multipliers.clear();
   e.normal.clear();
   e.part.clear();
-  std::vector<double> integral;
-  Triplets ga, gb;
+  std::vector<double>& integral = e.integral_list;
+  integral.clear();
+  auto& ga = e.grid_entries;
+  auto& gb = e.alpha_entries;
+  ga.clear();
+  gb.clear();
   for (int mu = 0; mu < static_cast<int>(gamma.multiplier_node.size()); ++mu) {
     const int g = gamma.multiplier_node[mu];
     if (w.mass[g] <= coupling_threshold_ || w.wall_index_of_node[g] < 0) continue;
@@ -194,8 +191,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
       if (c >= 0) gb.emplace_back(c, col, it.value());
     }
   }
-  e.integral = Eigen::Map<const Eigen::VectorXd>(integral.data(),
-                                                 static_cast<Eigen::Index>(integral.size()));
+  e.integral.resize(static_cast<Eigen::Index>(integral.size()));
+  std::copy(integral.begin(), integral.end(), e.integral.data());
 
   const auto na = static_cast<Eigen::Index>(e.a_rows.size());
   const auto ns = static_cast<Eigen::Index>(e.alpha_cols.size());
@@ -204,20 +201,42 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   for (Eigen::Index r = 0; r < na; ++r) e.inv_mass[r] = 1.0 / grid.mass[e.a_rows[r]];
   e.alpha_mass.resize(ns);
   for (Eigen::Index c = 0; c < ns; ++c) e.alpha_mass[c] = w.mass[e.alpha_cols[c]];
-  e.cross = cross_candidates * selection;
-  e.cross.conservativeResize(na, ns);  // rows the multipliers added carry no cross mass
-  e.grid_r.resize(na, k);
-  e.grid_r.setFromTriplets(ga.begin(), ga.end());
-  e.alpha_r.resize(ns, k);
-  e.alpha_r.setFromTriplets(gb.begin(), gb.end());
+  // The kept columns of the cross mass (rows the multipliers added carry none).
+  {
+    Eigen::Index kept = 0;
+    for (std::size_t c = 0; c < candidates.size(); ++c) {
+      if (renumber[c] < 0) continue;
+      const auto col = static_cast<Eigen::Index>(c);
+      kept += cross_candidates.outerIndexPtr()[col + 1] - cross_candidates.outerIndexPtr()[col];
+    }
+    reshape(e.cross, na, ns);
+    e.cross.resizeNonZeros(kept);
+    int* outer = e.cross.outerIndexPtr();
+    int next = 0;
+    for (std::size_t c = 0; c < candidates.size(); ++c) {
+      if (renumber[c] < 0) continue;
+      outer[renumber[c]] = next;
+      for (Sparse::InnerIterator it(cross_candidates, static_cast<Eigen::Index>(c)); it; ++it) {
+        e.cross.innerIndexPtr()[next] = static_cast<int>(it.row());
+        e.cross.valuePtr()[next] = it.value();
+        ++next;
+      }
+    }
+    outer[ns] = next;
+  }
+  assign_by_columns(e.grid_r, na, k, ga, e.assembly_work);
+  assign_by_columns(e.alpha_r, ns, k, gb, e.assembly_work);
 
-  const Sparse minv_c = e.inv_mass.asDiagonal() * e.cross;
-  Sparse mass_alpha(ns, ns);
-  mass_alpha.setIdentity();
-  mass_alpha = e.alpha_mass.asDiagonal() * mass_alpha;
-  e.schur = mass_alpha - Sparse(e.cross.transpose() * minv_c);
-  e.coupled_r = e.alpha_r - Sparse(minv_c.transpose() * e.grid_r);
-  e.grid_rr = e.grid_r.transpose() * e.inv_mass.asDiagonal() * e.grid_r;
+  // M_A^-1 C (the cross mass's pattern, rows scaled), then K = M^alpha - C^T M_A^-1 C,
+  // W = R^alpha - (M_A^-1 C)^T R^A and R^A^T M_A^-1 R^A, in the state's own storage.
+  Sparse& minv_c = e.minv_cross;
+  copy_into(e.cross, minv_c);
+  for (Eigen::Index c = 0; c < minv_c.outerSize(); ++c) {
+    for (Sparse::InnerIterator it(minv_c, c); it; ++it) it.valueRef() *= e.inv_mass[it.row()];
+  }
+  product_into(nullptr, &e.alpha_mass, e.cross, nullptr, minv_c, e.schur, e.product_work);
+  product_into(&e.alpha_r, nullptr, minv_c, nullptr, e.grid_r, e.coupled_r, e.product_work);
+  product_into(nullptr, nullptr, e.grid_r, &e.inv_mass, e.grid_r, e.grid_rr, e.product_work);
   e.kkt_ready = false;  // new masses: the contact system is solved anew
   if (ns > 0 && !factorise_or_reuse(*e.schur_solver, e.schur, e.schur_base, e.schur_pattern,
                                     e.schur_factored, true, e.schur_refine, e.factorizations)) {
@@ -234,26 +253,40 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
                                const std::vector<Vec<D>>& alpha_momentum,
                                std::vector<Vec<D>>& valpha, bool constrained, bool record) {
   EnhancedState<D>& e = w.enh;
-  using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
+  using Block = typename EnhancedState<D>::Block;
   const auto na = static_cast<Eigen::Index>(e.a_rows.size());
   const auto ns = static_cast<Eigen::Index>(e.alpha_cols.size());
   // Unconstrained solves keep every multiplier off.
   const auto k = static_cast<Eigen::Index>(e.multipliers.size());
   if (ns > 0 && !e.schur_factored) return;
 
-  Block pa(na, D), ps(ns, D);
+  // The blocks and lists are the state's scratch (sized once per active set).
+  Block& pa = e.pa;
+  Block& ps = e.ps;
+  pa.resize(na, D);
+  ps.resize(ns, D);
   for (Eigen::Index r = 0; r < na; ++r) {
     pa.row(r) = grid.mass[e.a_rows[r]] * va[e.a_rows[r]].transpose();
   }
   for (Eigen::Index c = 0; c < ns; ++c) ps.row(c) = alpha_momentum[e.alpha_cols[c]].transpose();
 
-  Block vs = Block::Zero(ns, D), vna(na, D), impulse = Block::Zero(k, D), load = Block::Zero(k, D);
-  std::vector<Contact> state(static_cast<std::size_t>(k), Contact::off);
+  Block& vs = e.vs;
+  Block& vna = e.vna;
+  Block& impulse = e.impulse;
+  Block& load = e.load;
+  vs.setZero(ns, D);
+  vna.resize(na, D);
+  impulse.setZero(k, D);
+  load.setZero(k, D);
+  std::vector<Contact>& state = e.contact;
+  state.assign(static_cast<std::size_t>(k), Contact::off);
   const WallContact& contact = w.spec->contact;
   // Each multiplier takes the condition of its part: its friction coefficient (0: slip) and the
   // state it starts in when it comes into contact (stick for sticky and frictional walls).
-  std::vector<double> mu_of(static_cast<std::size_t>(k), 0.0);
-  std::vector<Contact> on_of(static_cast<std::size_t>(k), Contact::normal);
+  std::vector<double>& mu_of = e.friction;
+  std::vector<Contact>& on_of = e.on_contact;
+  mu_of.assign(static_cast<std::size_t>(k), 0.0);
+  on_of.assign(static_cast<std::size_t>(k), Contact::normal);
   for (std::size_t i = 0; i < static_cast<std::size_t>(k); ++i) {
     const WallCondition& condition = w.spec->condition(e.part[i]);
     const bool sticky = std::holds_alternative<Sticky>(condition);
@@ -264,12 +297,20 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
   // Solve for the current contact states (and friction loads); returns false if the system
   // could not be factorised.
   auto solve = [&]() {
-    const Block pa_l = pa + e.grid_r * load;
-    const Block ps_l = ps + e.alpha_r * load;
-    const Block minv_pa = e.inv_mass.asDiagonal() * pa_l;
-    const Block rhs_alpha = ps_l - e.cross.transpose() * minv_pa;
+    Block& pa_l = e.pa_load;
+    Block& ps_l = e.ps_load;
+    Block& minv_pa = e.minv_pa;
+    Block& rhs_alpha = e.rhs_alpha;
+    pa_l = pa;
+    pa_l.noalias() += e.grid_r * load;
+    ps_l = ps;
+    ps_l.noalias() += e.alpha_r * load;
+    minv_pa = e.inv_mass.asDiagonal() * pa_l;
+    rhs_alpha = ps_l;
+    rhs_alpha.noalias() -= e.cross.transpose() * minv_pa;
     // Constraint rows: one per direction that is held.
-    std::vector<std::pair<int, Vec<D>>> rows;
+    auto& rows = e.rows;
+    rows.clear();
     for (Eigen::Index i = 0; i < k; ++i) {
       const auto s = state[static_cast<std::size_t>(i)];
       if (s == Contact::stick) {
@@ -281,7 +322,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
     impulse.setZero();
     if (rows.empty()) {
       if (ns > 0 && !refined_solve(*e.schur_solver, e.schur, e.schur_base, e.schur_refine,
-                                   rhs_alpha, vs, e.refinements, e.factorizations)) {
+                                   rhs_alpha, vs, e.refinements, e.factorizations, e.schur_work)) {
         return false;
       }
     } else {
@@ -289,14 +330,20 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
       // The matrix depends only on this step's masses and on which directions are held: a
       // solve with the same rows (the MUSL remap, or an active-set pass that only moved
       // friction loads) reuses the factorisation.
-      std::vector<int> signature(rows.size());
+      std::vector<int>& signature = e.signature;
+      signature.resize(rows.size());
       for (std::size_t c = 0; c < rows.size(); ++c) {
         signature[c] = 4 * rows[c].first + static_cast<int>(state[rows[c].first]);
       }
       if (!e.kkt_ready || signature != e.kkt_signature) {
-        std::vector<std::vector<int>> rows_of(static_cast<std::size_t>(k));
-        for (std::size_t c = 0; c < rows.size(); ++c) rows_of[rows[c].first].push_back(int(c));
-        Triplets t;
+        // The held rows of multiplier i are row_first[i] .. row_first[i + 1] - 1 (rows are
+        // listed by multiplier).
+        std::vector<int>& row_first = e.row_first;
+        row_first.assign(static_cast<std::size_t>(k) + 1, 0);
+        for (const auto& row : rows) ++row_first[static_cast<std::size_t>(row.first) + 1];
+        for (Eigen::Index i = 0; i < k; ++i) row_first[i + 1] += row_first[i];
+        auto& t = e.kkt_entries;
+        t.clear();
         for (Eigen::Index c = 0; c < e.schur.outerSize(); ++c) {
           for (Sparse::InnerIterator it(e.schur, c); it; ++it) {
             for (int d = 0; d < D; ++d) t.emplace_back(it.row() * D + d, c * D + d, it.value());
@@ -304,7 +351,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
         }
         for (Eigen::Index i = 0; i < e.coupled_r.outerSize(); ++i) {
           for (Sparse::InnerIterator it(e.coupled_r, i); it; ++it) {
-            for (const int c : rows_of[i]) {
+            for (int c = row_first[i]; c < row_first[i + 1]; ++c) {
               const Vec<D>& dir = rows[c].second;
               for (int d = 0; d < D; ++d) {
                 if (dir[d] == 0.0) continue;
@@ -320,8 +367,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
         for (Eigen::Index i = 0; i < e.grid_rr.outerSize(); ++i) {
           for (Sparse::InnerIterator it(e.grid_rr, i); it; ++it) {
             if (it.row() == i) scale = std::max(scale, it.value());
-            for (const int c : rows_of[i]) {
-              for (const int c2 : rows_of[it.row()]) {
+            for (int c = row_first[i]; c < row_first[i + 1]; ++c) {
+              for (int c2 = row_first[it.row()]; c2 < row_first[it.row() + 1]; ++c2) {
                 const double dd = rows[c].second.dot(rows[c2].second);
                 if (dd != 0.0) t.emplace_back(nv + c2, nv + c, -it.value() * dd);
               }
@@ -329,31 +376,32 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
           }
         }
         for (Eigen::Index c = 0; c < nc; ++c) t.emplace_back(nv + c, nv + c, -1e-10 * scale);
-        Sparse kkt(nv + nc, nv + nc);
-        kkt.setFromTriplets(t.begin(), t.end());
+        assign_by_columns(e.kkt_matrix, nv + nc, nv + nc, t, e.assembly_work);
         // The same rows on the same pattern as the factorisation in hand (contact that has not
         // changed since an earlier step): the masses moved a little, so that factorisation is a
         // close preconditioner and a few refinement passes solve the new matrix to round-off;
         // only a pattern or row change, or a refinement that stalls, refactorises.
-        if (!factorise_or_reuse(*e.kkt_solver, kkt, e.kkt_base, e.kkt_pattern, e.kkt_factored,
-                                signature == e.kkt_signature, e.kkt_refine, e.factorizations)) {
+        if (!factorise_or_reuse(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_pattern,
+                                e.kkt_factored, signature == e.kkt_signature, e.kkt_refine,
+                                e.factorizations)) {
           return false;
         }
-        e.kkt_matrix = std::move(kkt);
         e.kkt_ready = true;
-        e.kkt_signature = std::move(signature);
+        e.kkt_signature = signature;
       }
-      Eigen::VectorXd rhs(nv + nc);
+      Eigen::VectorXd& rhs = e.rhs;
+      rhs.resize(nv + nc);
       for (Eigen::Index c = 0; c < ns; ++c) {
         for (int d = 0; d < D; ++d) rhs[c * D + d] = rhs_alpha(c, d);
       }
-      const Block rt_minv_pa = e.grid_r.transpose() * minv_pa;
+      Block& rt_minv_pa = e.rt_minv_pa;
+      rt_minv_pa.noalias() = e.grid_r.transpose() * minv_pa;
       for (Eigen::Index c = 0; c < nc; ++c) {
         rhs[nv + c] = rows[c].second.dot(rt_minv_pa.row(rows[c].first).transpose());
       }
-      Eigen::VectorXd x;
+      Eigen::VectorXd& x = e.solution;
       if (!refined_solve(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_refine, rhs, x,
-                         e.refinements, e.factorizations)) {
+                         e.refinements, e.factorizations, e.kkt_work)) {
         return false;
       }
       for (Eigen::Index c = 0; c < ns; ++c) {
@@ -363,10 +411,17 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
         impulse.row(rows[c].first) += x[nv + c] * rows[c].second.transpose();
       }
     }
-    vna = e.inv_mass.asDiagonal() * Block(pa_l - e.cross * vs + e.grid_r * impulse);
+    // v^A = M_A^-1 (p^A - C v^alpha + R^A j), through pa_l.
+    pa_l.noalias() -= e.cross * vs;
+    pa_l.noalias() += e.grid_r * impulse;
+    vna = e.inv_mass.asDiagonal() * pa_l;
     return true;
   };
-  auto gaps = [&]() -> Block { return e.grid_r.transpose() * vna + e.alpha_r.transpose() * vs; };
+  auto gaps = [&]() -> const Block& {
+    e.gap.noalias() = e.grid_r.transpose() * vna;
+    e.gap.noalias() += e.alpha_r.transpose() * vs;
+    return e.gap;
+  };
 
   bool ok = true;
   if (constrained && k > 0 && !record) {
@@ -385,7 +440,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
       // (contact changes little from step to step, so the loop usually settles in one pass),
       // elsewhere from where the unconstrained field moves into the wall.
       ok = solve();
-      const Block g = gaps();
+      const Block& g = gaps();
       const auto total = e.previous_state.size();
       for (Eigen::Index i = 0; i < k; ++i) {
         const auto mu = static_cast<std::size_t>(e.multipliers[static_cast<std::size_t>(i)]);
@@ -407,7 +462,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
       ++e.active_set_iterations;
       ok = solve();
       if (!ok) break;
-      const Block g = gaps();
+      const Block& g = gaps();
       bool changed = false;
       for (Eigen::Index i = 0; i < k; ++i) {
         auto& s = state[static_cast<std::size_t>(i)];

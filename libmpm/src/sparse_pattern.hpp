@@ -26,17 +26,33 @@ inline std::size_t pattern_hash(const Eigen::SparseMatrix<double>& m) {
   return hash;
 }
 
-/// Sets m to the rows x cols matrix of `entries` (no (row, column) twice), reusing m's storage
-/// and `work` (scratch): unlike setFromTriplets(), no allocation once m has held this many
-/// columns and entries. Linear in the entries, rows and columns: the entries are bucketed by
-/// row and then dealt to their columns, so each column comes out in increasing row order, as
-/// Eigen's algorithms expect.
+/// m.resize(rows, cols), except that a matrix of no columns already of that shape is left as
+/// it is: Eigen frees and allocates the column array of every resize to zero columns.
+inline void reshape(Eigen::SparseMatrix<double>& m, Eigen::Index rows, Eigen::Index cols) {
+  if (cols == 0 && m.cols() == 0 && m.rows() == rows) return;  // no entries to clear
+  m.resize(rows, cols);
+}
+
+/// dst = src into dst's storage (no allocation once dst has held as many entries and columns).
+inline void copy_into(const Eigen::SparseMatrix<double>& src, Eigen::SparseMatrix<double>& dst) {
+  reshape(dst, src.rows(), src.cols());
+  dst.resizeNonZeros(src.nonZeros());
+  std::copy(src.outerIndexPtr(), src.outerIndexPtr() + src.outerSize() + 1, dst.outerIndexPtr());
+  std::copy(src.innerIndexPtr(), src.innerIndexPtr() + src.nonZeros(), dst.innerIndexPtr());
+  std::copy(src.valuePtr(), src.valuePtr() + src.nonZeros(), dst.valuePtr());
+}
+
+/// Sets m to the rows x cols matrix of `entries`, summing the entries of the same (row, column)
+/// in their order (as setFromTriplets() does), reusing m's storage and `work` (scratch): unlike
+/// setFromTriplets(), no allocation once m has held this many columns and entries. Linear in
+/// the entries, rows and columns: the entries are bucketed by row and then dealt to their
+/// columns, so each column comes out in increasing row order, as Eigen's algorithms expect.
 inline void assign_by_columns(Eigen::SparseMatrix<double>& m, Eigen::Index rows, Eigen::Index cols,
                               const std::vector<Eigen::Triplet<double>>& entries,
                               std::vector<int>& work) {
   const auto nnz = static_cast<Eigen::Index>(entries.size());
-  m.resize(rows, cols);   // keeps the column array when the column count is the same
-  m.resizeNonZeros(nnz);  // keeps the capacity
+  reshape(m, rows, cols);  // keeps the column array when the column count is the same
+  m.resizeNonZeros(nnz);   // keeps the capacity
   work.assign(static_cast<std::size_t>(rows + 1 + nnz + cols), 0);
   int* row_start = work.data();        // rows + 1
   int* by_row = row_start + rows + 1;  // nnz entry numbers, grouped by row
@@ -57,12 +73,111 @@ inline void assign_by_columns(Eigen::SparseMatrix<double>& m, Eigen::Index rows,
   for (Eigen::Index e = 0; e < nnz; ++e) {
     by_row[row_start[entries[static_cast<std::size_t>(e)].row()]++] = static_cast<int>(e);
   }
+  bool merged = false;
   for (Eigen::Index k = 0; k < nnz; ++k) {  // by_row lists the entries by increasing row
     const auto& t = entries[static_cast<std::size_t>(by_row[k])];
-    const int slot = next[t.col()]++;
+    int& slot = next[t.col()];
+    // A repeated (row, column) arrives right after the first: its row is the column's last.
+    if (slot > outer[t.col()] && inner[slot - 1] == t.row()) {
+      value[slot - 1] += t.value();
+      merged = true;
+      continue;
+    }
     inner[slot] = t.row();
     value[slot] = t.value();
+    ++slot;
   }
+  if (!merged) return;
+  int end = 0;  // close the gaps the merged entries left
+  for (Eigen::Index c = 0; c < cols; ++c) {
+    const int first = outer[c];
+    outer[c] = end;
+    for (int e = first; e < next[c]; ++e, ++end) {
+      inner[end] = inner[e];
+      value[end] = value[e];
+    }
+  }
+  outer[cols] = end;
+  m.resizeNonZeros(end);
+}
+
+/// at = a^T into at's storage (no allocation once at has held as many entries and columns).
+inline void transpose_into(const Eigen::SparseMatrix<double>& a, Eigen::SparseMatrix<double>& at) {
+  reshape(at, a.cols(), a.rows());
+  at.resizeNonZeros(a.nonZeros());
+  int* outer = at.outerIndexPtr();  // one column of at per row of a
+  std::fill(outer, outer + a.rows() + 1, 0);
+  const int* inner = a.innerIndexPtr();
+  for (Eigen::Index e = 0; e < a.nonZeros(); ++e) ++outer[inner[e] + 1];
+  for (Eigen::Index r = 0; r < a.rows(); ++r) outer[r + 1] += outer[r];
+  // a's columns in increasing order, so that each column of at comes out sorted; outer[r] is
+  // row r's next free slot meanwhile, shifted back after.
+  for (Eigen::Index c = 0; c < a.cols(); ++c) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(a, c); it; ++it) {
+      const int slot = outer[it.row()]++;
+      at.innerIndexPtr()[slot] = static_cast<int>(c);
+      at.valuePtr()[slot] = it.value();
+    }
+  }
+  for (Eigen::Index r = a.rows(); r > 0; --r) outer[r] = outer[r - 1];
+  outer[0] = 0;
+}
+
+/// C = X - A^T diag(s) B (A^T diag(s) B when X is absent; s = 1 when absent), X given as a
+/// sparse matrix or as a diagonal, into C's storage and `w` (no allocation once they have held
+/// this much). C's pattern is X's and the product's together; columns sorted. The product is
+/// summed column by column (Gustavson), in another order than Eigen's product (round-off).
+inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::VectorXd* x_diagonal,
+                         const Eigen::SparseMatrix<double>& a, const Eigen::VectorXd* s,
+                         const Eigen::SparseMatrix<double>& b, Eigen::SparseMatrix<double>& c,
+                         ProductWork& w) {
+  const Eigen::Index rows = a.cols(), cols = b.cols();
+  transpose_into(a, w.lhs_rows);
+  const Eigen::SparseMatrix<double>& at = w.lhs_rows;
+  w.product.assign(static_cast<std::size_t>(rows), 0.0);
+  w.base.assign(static_cast<std::size_t>(rows), 0.0);
+  w.mark.assign(static_cast<std::size_t>(rows), -1);
+  w.inner.clear();
+  w.value.clear();
+  reshape(c, rows, cols);
+  int* outer = c.outerIndexPtr();
+  outer[0] = 0;
+  const bool subtract = x != nullptr || x_diagonal != nullptr;
+  for (Eigen::Index j = 0; j < cols; ++j) {
+    w.touched.clear();
+    auto touch = [&](Eigen::Index i) {
+      const auto k = static_cast<std::size_t>(i);
+      if (w.mark[k] == j) return k;
+      w.mark[k] = static_cast<int>(j);
+      w.product[k] = 0.0;
+      w.base[k] = 0.0;
+      w.touched.push_back(static_cast<int>(i));
+      return k;
+    };
+    for (Eigen::SparseMatrix<double>::InnerIterator it(b, j); it; ++it) {
+      const double scale = s != nullptr ? (*s)[it.row()] : 1.0;
+      for (Eigen::SparseMatrix<double>::InnerIterator jt(at, it.row()); jt; ++jt) {
+        const double a_ri = s != nullptr ? jt.value() * scale : jt.value();
+        w.product[touch(jt.row())] += a_ri * it.value();
+      }
+    }
+    if (x != nullptr) {
+      for (Eigen::SparseMatrix<double>::InnerIterator it(*x, j); it; ++it) {
+        w.base[touch(it.row())] = it.value();
+      }
+    }
+    if (x_diagonal != nullptr) w.base[touch(j)] = (*x_diagonal)[j];
+    std::sort(w.touched.begin(), w.touched.end());
+    for (const int i : w.touched) {
+      const auto k = static_cast<std::size_t>(i);
+      w.inner.push_back(i);
+      w.value.push_back(subtract ? w.base[k] - w.product[k] : w.product[k]);
+    }
+    outer[j + 1] = static_cast<int>(w.inner.size());
+  }
+  c.resizeNonZeros(static_cast<Eigen::Index>(w.inner.size()));
+  std::copy(w.inner.begin(), w.inner.end(), c.innerIndexPtr());
+  std::copy(w.value.begin(), w.value.end(), c.valuePtr());
 }
 
 /// x = A^-1 b with the factorisation in `solver`, as solver.solve(b) computes it (the same
@@ -124,29 +239,37 @@ bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& pas
   }
 }
 
+/// x = A^-1 b column by column with ldlt_solve() (the same operations as solver.solve(b)),
+/// `work` scratch of b's shape.
+template <class Rhs>
+void solve_columns(const SparseLdlt& solver, const Rhs& b, Rhs& x, Rhs& work) {
+  x.resize(b.rows(), b.cols());
+  work.resize(b.rows(), b.cols());
+  for (Eigen::Index c = 0; c < b.cols(); ++c) ldlt_solve(solver, b.col(c), x.col(c), work.col(c));
+}
+
 /// Solves m x = b with `solver`, which holds a factorisation of m itself or, when `refine`, of
 /// an earlier matrix with the same pattern (the previous step's: the masses change a little
 /// from step to step), refined then by refine(); unconverged (the matrices are too far apart),
 /// m is factorised and `refine` cleared. Returns false if m cannot be factorised. `base` keeps
 /// the matrix the solver's factorisation is of (a checkpoint saves it, so a resumed run refines
 /// against the same one). `passes` and `factorizations` count the work done (reported by the
-/// benchmarks).
+/// benchmarks). Allocates only to factorise (`w` is the caller's scratch).
 template <class Rhs>
 bool refined_solve(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
                    Eigen::SparseMatrix<double>& base, bool& refine, const Rhs& b, Rhs& x,
-                   std::size_t& passes, std::size_t& factorizations) {
-  x = solver.solve(b);
+                   std::size_t& passes, std::size_t& factorizations, SolveWork<Rhs>& w) {
+  solve_columns(solver, b, x, w.work);
   if (!refine) return true;
-  const auto product = [&](const Rhs& y, Rhs& out) { out = m * y; };
-  const auto factor = [&](const Rhs& r, Rhs& out) { out = solver.solve(r); };
-  Rhs residual, update;
-  if (mpm::refine(b, x, product, factor, passes, residual, update)) return true;
+  const auto product = [&](const Rhs& y, Rhs& out) { out.noalias() = m * y; };
+  const auto factor = [&](const Rhs& r, Rhs& out) { solve_columns(solver, r, out, w.work); };
+  if (mpm::refine(b, x, product, factor, passes, w.residual, w.update)) return true;
   solver.factorize(m);
   base = m;
   ++factorizations;
   refine = false;
   if (solver.info() != Eigen::Success) return false;
-  x = solver.solve(b);
+  solve_columns(solver, b, x, w.work);
   return true;
 }
 

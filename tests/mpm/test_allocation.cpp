@@ -2,9 +2,9 @@
 // scratch buffers, grid blocks and coupling matrices), a step makes no heap allocation: counted
 // here with every malloc of the process (support/allocation_counter.cpp replaces malloc in this
 // test binary only), so Eigen temporaries, std::vector growth and TBB tasks all count.
-// The Blending coupling may allocate in a step that forms and factorises its Schur complement
-// (Eigen's ordering and factorisation allocate; the active set of a flow changes most steps);
-// a step that solves with the factorisation in hand allocates nothing.
+// The dual-grid couplings (Blending mortar and one-way, Enhanced) may allocate in a step that
+// factorises (Eigen's ordering and factorisation allocate; the active set of a flow changes
+// most steps); a step that solves with the factorisations in hand allocates nothing.
 
 #include <gtest/gtest.h>
 
@@ -132,10 +132,10 @@ TEST(Allocation, GridFaceAndSdfWallsAllocateNothing) {
   }
 }
 
-// The Blending coupling: its per-step assembly and its solves by refinement against the
-// factorisation in hand reuse the wall's buffers.
-TEST(Allocation, BlendingCouplingAllocatesOnlyToFactorise) {
-  for (const char* method : {"mortar", "one-way"}) {
+// The dual-grid couplings: their per-step assembly and their solves by refinement against the
+// factorisations in hand reuse the wall's buffers.
+TEST(Allocation, DualGridCouplingsAllocateOnlyToFactorise) {
+  for (const char* method : {"mortar", "one-way", "enhanced"}) {
     for (const char* condition : {"slip", "friction"}) {
       const Count c = allocations_in_steps<3>(mpm::test::parse(sliding_block(method, condition)));
       EXPECT_EQ(c.allocations, 0U) << method << ", " << condition;

@@ -34,6 +34,23 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   [[nodiscard]] const Eigen::VectorXd& diagonal() const { return m_diag; }
 };
 
+/// Scratch of product_into() (sparse_pattern.hpp), kept between calls.
+struct ProductWork {
+  Eigen::SparseMatrix<double> lhs_rows;  ///< A^T
+  std::vector<double> product, base;
+  std::vector<int> mark, touched, inner;
+  std::vector<double> value;
+};
+
+/// Scratch of refined_solve() (sparse_pattern.hpp) for right-hand sides of type Rhs.
+template <class Rhs>
+struct SolveWork {
+  Rhs residual, update, work;
+};
+
+/// Contact state of one Gamma multiplier in Enhanced's active-set loop.
+enum class Contact : unsigned char { off, normal, stick, slip };
+
 /// Per-step state of the Enhanced velocity field method (enhanced.cpp). Compact indices: the
 /// standard-grid nodes the layer's particles reach ("near" rows), the free boundary-grid nodes
 /// that carry an enhancement ("alpha" columns) and the Gamma multipliers in contact.
@@ -82,6 +99,25 @@ struct EnhancedState {
   /// Final contact state per wall multiplier (all of them, 0xFF: not active) of the last step:
   /// the next step's active set starts from it.
   std::vector<unsigned char> previous_state;
+
+  // Scratch kept from step to step, so that a step whose solves reuse the factorisations in
+  // hand allocates nothing (issue 9; test_allocation).
+  using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
+  std::vector<int> candidates, renumber;
+  std::vector<double> candidate_diagonal, integral_list;
+  std::vector<char> covered;
+  std::vector<Eigen::Triplet<double>> cross_entries, grid_entries, alpha_entries, kkt_entries;
+  std::vector<int> assembly_work;
+  Eigen::SparseMatrix<double> cross_candidates, minv_cross;
+  ProductWork product_work;
+  Block pa, ps, vs, vna, impulse, load, pa_load, ps_load, minv_pa, rhs_alpha, rt_minv_pa, gap;
+  std::vector<Contact> contact, on_contact;
+  std::vector<double> friction;
+  std::vector<std::pair<int, Vec<D>>> rows;  ///< held directions: (multiplier, direction)
+  std::vector<int> signature, row_first;
+  Eigen::VectorXd rhs, solution;
+  SolveWork<Block> schur_work;
+  SolveWork<Eigen::VectorXd> kkt_work;
 };
 
 template <int D>
