@@ -538,7 +538,11 @@ void Solver<D>::layer_couple(bool remapped) {
         enhanced_solve(w, grid.velocity, w.momentum, w.velocity, true, false);
       } else {
         enhanced_assemble(w);
-        enhanced_solve(w, grid.velocity, w.momentum, w.velocity, false, false);
+        // The coupled v^n only for FLIP's increment (v^{n+1} - v^n): PIC and APIC gather v^{n+1},
+        // and MUSL's remap solves the old velocities anew (as the Blending walls below).
+        if (scene_.transfer != Transfer::apic && scene_.flip_blend > 0.0) {
+          enhanced_solve(w, grid.velocity, w.momentum, w.velocity, false, false);
+        }
         enhanced_solve(w, grid.velocity_new, w.momentum_new, w.velocity_new, true, true);
       }
       continue;
