@@ -438,13 +438,23 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
     if (contact.separable) {
       // Start from the previous step's contact state where the multiplier was in contact then
       // (contact changes little from step to step, so the loop usually settles in one pass),
-      // elsewhere from where the unconstrained field moves into the wall.
-      ok = solve();
-      const Block& g = gaps();
+      // elsewhere from where the unconstrained field moves into the wall: that solve only when
+      // some multiplier has no previous state (in steady contact none lacks one).
       const auto total = e.previous_state.size();
-      for (Eigen::Index i = 0; i < k; ++i) {
+      auto known = [&](Eigen::Index i) {
         const auto mu = static_cast<std::size_t>(e.multipliers[static_cast<std::size_t>(i)]);
-        if (mu < total && e.previous_state[mu] != 0xFF) {
+        return mu < total && e.previous_state[mu] != 0xFF;
+      };
+      bool all_known = true;
+      for (Eigen::Index i = 0; i < k && all_known; ++i) all_known = known(i);
+      if (!all_known) {
+        ok = solve();
+        gaps();
+      }
+      const Block& g = e.gap;
+      for (Eigen::Index i = 0; i < k; ++i) {
+        if (known(i)) {
+          const auto mu = static_cast<std::size_t>(e.multipliers[static_cast<std::size_t>(i)]);
           const auto s = static_cast<Contact>(e.previous_state[mu]);
           state[static_cast<std::size_t>(i)] =
               s == Contact::off ? Contact::off : on_of[static_cast<std::size_t>(i)];
