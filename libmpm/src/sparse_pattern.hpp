@@ -1,7 +1,9 @@
 #pragma once
 // What the dual-grid solvers (the mortar/one-way Schur complement, Enhanced's systems) share:
 // the sparsity signature that decides when a fill-reducing ordering (a symbolic factorisation)
-// must be recomputed, and the reuse of an earlier step's factorisation by refinement.
+// must be recomputed, the reuse of an earlier step's factorisation by refinement, and the sparse
+// assembly, products and solves that work in the caller's storage, so that a step that does not
+// factorise allocates nothing (issue 9, tests/mpm/test_allocation.cpp).
 
 #include <algorithm>
 #include <cmath>
