@@ -22,12 +22,10 @@
 
 #include <malloc.h>
 
-#include <filesystem>
-
 #include <nlohmann/json.hpp>
 
 #include "mpm/solver.hpp"
-#include "mpmgeom/triangle_mesh.hpp"
+#include "support/shapes.hpp"
 
 namespace {
 
@@ -62,21 +60,6 @@ mpm::Scene block_scene(int cells, const char* update = "musl", const char* stora
   return mpm::parse_scene(doc, "<bench>");
 }
 
-/// A floor plane z = level as two triangles spanning [lo, hi]^2, normals up.
-std::filesystem::path floor_mesh(double level, double lo, double hi) {
-  const auto file = std::filesystem::temp_directory_path() /
-                    ("mpm_bench_floor_" + std::to_string(level) + ".obj");
-  mpmgeom::TriangleMesh mesh;
-  mesh.V.resize(4, 3);
-  mesh.V << lo, lo, level, hi, lo, level, hi, hi, level, lo, hi, level;
-  mesh.F.resize(2, 3);
-  mesh.F << 0, 1, 2, 0, 2, 3;
-  mesh.part = Eigen::VectorXi::Zero(2);
-  mesh.part_names = {"floor"};
-  mpmgeom::save_mesh(mesh, file);
-  return file;
-}
-
 mpm::Scene floor_scene(int cells, int method) {
   const double h = 1.0 / cells;
   const double base = method == 0 ? 0.0 : 0.3 * h;  // dual-grid floor off the grid lines
@@ -84,15 +67,16 @@ mpm::Scene floor_scene(int cells, int method) {
   if (method == 0) {
     wall = {{"face", "zmin"}, {"condition", "slip"}, {"separable", true}};
   } else {
-    wall = {
-        {"name", "floor"},
-        {"surface",
-         {{"type", "mesh"}, {"file", floor_mesh(base, -h, 1.0 + h).string()}, {"remesh", true}}},
-        {"method", method == 1 || method == 4 ? "mortar"
-                   : method == 2              ? "one-way"
-                                              : "enhanced"},
-        {"condition", "slip"},
-        {"separable", true}};
+    wall = {{"name", "floor"},
+            {"surface",
+             {{"type", "mesh"},
+              {"file", mpm::test::floor_plane_file("mpm_bench", base, -h, 1.0 + h).string()},
+              {"remesh", true}}},
+            {"method", method == 1 || method == 4 ? "mortar"
+                       : method == 2              ? "one-way"
+                                                  : "enhanced"},
+            {"condition", "slip"},
+            {"separable", true}};
     if (method == 4) wall["multiplier_radius"] = 1.0;
   }
   const nlohmann::json doc = {

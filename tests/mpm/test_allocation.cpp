@@ -9,15 +9,14 @@
 #include <gtest/gtest.h>
 
 #include <cstddef>
-#include <filesystem>
 #include <string>
 
 #include <nlohmann/json.hpp>
 
 #include "mpm/solver.hpp"
-#include "mpmgeom/triangle_mesh.hpp"
 #include "support/allocation_counter.hpp"
 #include "support/scenes.hpp"
+#include "support/shapes.hpp"
 
 namespace {
 
@@ -69,21 +68,6 @@ json moving_block(int dim, const std::string& update, const std::string& storage
   return doc;
 }
 
-/// A floor plane z = level, two triangles over [lo, hi]^2, normals up.
-std::string floor_mesh(double level, double lo, double hi) {
-  const auto file = std::filesystem::temp_directory_path() /
-                    ("mpm_test_allocation_floor_" + std::to_string(level) + ".obj");
-  mpmgeom::TriangleMesh mesh;
-  mesh.V.resize(4, 3);
-  mesh.V << lo, lo, level, hi, lo, level, hi, hi, level, lo, hi, level;
-  mesh.F.resize(2, 3);
-  mesh.F << 0, 1, 2, 0, 2, 3;
-  mesh.part = Eigen::VectorXi::Zero(2);
-  mesh.part_names = {"floor"};
-  mpmgeom::save_mesh(mesh, file);
-  return file.string();
-}
-
 /// A 3D block sliding along a floor under gravity: the box's zmin face, or a mesh plane 0.3 h
 /// off the grid lines coupled by `method` (sdf, mortar, one-way).
 json sliding_block(const std::string& method, const std::string& condition) {
@@ -100,7 +84,10 @@ json sliding_block(const std::string& method, const std::string& condition) {
     wall["face"] = "zmin";
   } else {
     wall["name"] = "floor";
-    wall["surface"] = {{"type", "mesh"}, {"file", floor_mesh(base, -0.05, 1.05)}, {"remesh", true}};
+    wall["surface"] = {
+        {"type", "mesh"},
+        {"file", mpm::test::floor_plane_file("mpm_test_allocation", base, -0.05, 1.05).string()},
+        {"remesh", true}};
     wall["method"] = method;
   }
   doc["walls"] = {wall};

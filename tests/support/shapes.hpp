@@ -4,13 +4,33 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <filesystem>
 #include <map>
+#include <string>
 #include <utility>
 #include <vector>
 
 #include "mpmgeom/triangle_mesh.hpp"
 
 namespace mpm::test {
+
+/// Writes the floor plane z = level, two triangles over [lo, hi]^2 with normals up (one part,
+/// "floor"), to an OBJ file in the temporary directory named after `name` and the level;
+/// returns its path.
+inline std::filesystem::path floor_plane_file(const std::string& name, double level, double lo,
+                                              double hi) {
+  const auto file =
+      std::filesystem::temp_directory_path() / (name + "_floor_" + std::to_string(level) + ".obj");
+  mpmgeom::TriangleMesh mesh;
+  mesh.V.resize(4, 3);
+  mesh.V << lo, lo, level, hi, lo, level, hi, hi, level, lo, hi, level;
+  mesh.F.resize(2, 3);
+  mesh.F << 0, 1, 2, 0, 2, 3;
+  mesh.part = Eigen::VectorXi::Zero(2);
+  mesh.part_names = {"floor"};
+  mpmgeom::save_mesh(mesh, file);
+  return file;
+}
 
 /// Icosahedron refined `levels` times by splitting every triangle in four, vertices on the
 /// sphere of radius `radius` about the origin; normals outward (or inward), one part "sphere".
