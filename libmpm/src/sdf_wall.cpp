@@ -91,7 +91,7 @@ void Solver<D>::setup_sdf_wall(const DualWallSpec& spec) {
   std::vector<Vec<D>> normals(grid.size());
   tbb::parallel_for(std::size_t{0}, grid.size(), [&](std::size_t n) {
     const Index<D> i = grid.multi(static_cast<int>(n));
-    if ((i.array() >= grid.nodes.array()).any()) return;  // a slot outside the box (block padding)
+    if (!grid.in_box(i)) return;
     const Vec<D> x = grid.position(i);
     Vec<D> normal;
     const double phi = probe(x, normal);

@@ -79,8 +79,7 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
     std::vector<std::pair<int, int>> ghosts;
     for (int n = 0; n < static_cast<int>(grid.size()); ++n) {
       Index<D> i = grid.multi(n);
-      if ((i.array() >= grid.nodes.array()).any())
-        continue;  // a slot outside the box (block padding)
+      if (!grid.in_box(i)) continue;
       if (i[a] < lo || i[a] > hi) continue;
       if (i[a] == wall_index || wall.contact.separable) {
         nodes.push_back(n);

@@ -198,6 +198,9 @@ struct Grid {
     }
     return i;
   }
+  /// Is node i in the box? (multi() of a storage slot outside it, the sparse layout's block
+  /// padding and Morton holes, is not.)
+  [[nodiscard]] bool in_box(const Index<D>& i) const { return (i.array() < nodes.array()).all(); }
   [[nodiscard]] Vec<D> position(const Index<D>& i) const {
     return origin + h * i.template cast<double>();
   }
