@@ -102,6 +102,11 @@ class CommandLine : public ::testing::Test {
 
   void write_scene(const json& scene) { write_text(scene_file_, scene.dump(2)); }
 
+  /// The summary.json of the last run.
+  [[nodiscard]] json read_summary() const {
+    return json::parse(read_text(out_dir_ / "summary.json"));
+  }
+
   RunResult run_scene(std::vector<std::string> extra = {}) {
     std::vector<std::string> args{"run", scene_file_.string(), "-o", out_dir_.string(), "-q"};
     args.insert(args.end(), extra.begin(), extra.end());
@@ -296,7 +301,7 @@ TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
   write_scene(scene);
   RunResult r = run_scene({"-j", "1"});
   ASSERT_EQ(r.exit_code, 0) << r.err;
-  json coupling = json::parse(read_text(out_dir_ / "summary.json")).at("coupling").at("floor");
+  json coupling = read_summary().at("coupling").at("floor");
   EXPECT_EQ(coupling.at("method"), "mortar");
   // The floor, 1 m in segments of h = 0.1: 11 Phi nodes, one multiplier each.
   EXPECT_EQ(coupling.at("surface_nodes").get<int>(), 11);
@@ -308,7 +313,7 @@ TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
   write_scene(scene);
   r = run_scene({"-j", "1", "--overwrite"});
   ASSERT_EQ(r.exit_code, 0) << r.err;
-  coupling = json::parse(read_text(out_dir_ / "summary.json")).at("coupling").at("floor");
+  coupling = read_summary().at("coupling").at("floor");
   EXPECT_EQ(coupling.at("surface_nodes").get<int>(), 11);
   EXPECT_EQ(coupling.at("multipliers").get<int>(), 6);
 }
@@ -322,10 +327,10 @@ TEST_F(CommandLine, ResolutionRefinesTheSceneAndAResumedRunKeepsIt) {
   write_scene(scene);
   RunResult r = run_scene({"-j", "1"});
   ASSERT_EQ(r.exit_code, 0) << r.err;
-  const json coarse = json::parse(read_text(out_dir_ / "summary.json"));
+  const json coarse = read_summary();
   r = run_scene({"-j", "1", "--overwrite", "--resolution", "2"});
   ASSERT_EQ(r.exit_code, 0) << r.err;
-  const json fine = json::parse(read_text(out_dir_ / "summary.json"));
+  const json fine = read_summary();
   EXPECT_EQ(coarse.at("resolution").get<int>(), 1);
   EXPECT_EQ(fine.at("resolution").get<int>(), 2);
   EXPECT_DOUBLE_EQ(fine.at("spacing").get<double>(), 0.5 * coarse.at("spacing").get<double>());
@@ -580,7 +585,7 @@ TEST_F(CommandLine, RunsSmallScene) {
   ASSERT_EQ(r.exit_code, 0) << r.err;
   EXPECT_EQ(r.err, "") << "--quiet and a clean scene: nothing to report";
 
-  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  const json summary = read_summary();
   EXPECT_EQ(summary.at("status"), "completed");
   EXPECT_GT(summary.at("steps").get<long>(), 0);
   EXPECT_FALSE(summary.contains("error"));
@@ -628,7 +633,7 @@ TEST_F(CommandLine, WallImpulsesCloseTheMomentumBalance) {
   write_scene(scene);
   const RunResult r = run_scene({"-j", "1"});
   ASSERT_EQ(r.exit_code, 0) << r.err;
-  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  const json summary = read_summary();
   const double mass = summary.at("flow").at("mass_final").get<double>();
   const double T = summary.at("simulated_time").get<double>();
   std::istringstream rows(read_text(out_dir_ / "history.csv"));
@@ -689,7 +694,7 @@ TEST_F(CommandLine, RefusesToOverwriteEarlierResult) {
 
   const RunResult replaced = run_scene({"--overwrite"});
   EXPECT_EQ(replaced.exit_code, 0) << replaced.err;
-  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  const json summary = read_summary();
   EXPECT_EQ(summary.at("status"), "completed");
   EXPECT_NEAR(summary.at("end_time").get<double>(), 0.02, 1e-12);
 }
@@ -716,7 +721,7 @@ TEST_F(CommandLine, ReportsBodyLeavingGridAsFault) {
   EXPECT_TRUE(contains(r.err, "material \"foam\"")) << r.err;
   EXPECT_TRUE(contains(r.err, "left the grid")) << r.err;
 
-  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  const json summary = read_summary();
   EXPECT_EQ(summary.at("status"), "failed");
   ASSERT_TRUE(summary.contains("error"));
   EXPECT_TRUE(contains(summary.at("error").get<std::string>(), "left the grid"));
@@ -766,7 +771,7 @@ TEST_F(CommandLine, ReportsRunawayEnergyAsFault) {
   EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
   EXPECT_TRUE(contains(r.err, "runaway energy")) << r.err;
   EXPECT_TRUE(contains(r.err, "material \"rubber\", body \"block\"")) << r.err;
-  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  const json summary = read_summary();
   EXPECT_EQ(summary.at("status"), "failed");
   EXPECT_LT(summary.at("steps").get<long>(), 119) << "before the CFL check would have stopped it";
 }
@@ -806,7 +811,7 @@ TEST_F(CommandLine, ReportsFixedTimeStepOutgrownByVelocityAsFault) {
   EXPECT_NEAR(limit, 0.01 / (std::sqrt(2.0e11 / 7850.0) + 50.0), 1e-3 * 1.96e-6) << r.err;
   EXPECT_LT(limit, dt) << "the message must show why the step is too large: " << r.err;
 
-  const json summary = json::parse(read_text(out_dir_ / "summary.json"));
+  const json summary = read_summary();
   EXPECT_EQ(summary.at("status"), "failed");
   EXPECT_TRUE(contains(summary.value("error", ""), "CFL limit"));
   EXPECT_GE(mpm::count_frames(out_dir_ / "particles.h5"), 1u) << "the initial state is kept";
