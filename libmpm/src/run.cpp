@@ -11,6 +11,7 @@
 #include <cstdio>
 #include <fstream>
 #include <iostream>
+#include <numbers>
 #include <optional>
 #include <sstream>
 
@@ -195,9 +196,70 @@ Eigen::Vector3d frame_point(const ParticleFrame& f, std::size_t p) {
   return {f.position[3 * p], f.position[3 * p + 1], f.position[3 * p + 2]};
 }
 
+/// The deposit's depth at each particle of `last`: the placement volume (the volume in `first`,
+/// at J = 1) of the particles within horizontal distance `radius` of it, over the disc's area
+/// (3D: pi r^2; 2D, plane strain: the segment's length 2 r, volumes being areas). `down` is the
+/// unit gravity direction; only the first `count` particles (present in both frames) take part.
+/// The placement volume, not the current one, so a loosened spray (its J grows, capped) does not
+/// read as a deep deposit. A depth below the particles' own layer (half a cell at 2 particles
+/// per cell) is not resolved: one stray layer reads as that deep.
+std::vector<double> deposit_depth(const ParticleFrame& first, const ParticleFrame& last,
+                                  std::size_t count, int dimension, const Eigen::Vector3d& down,
+                                  double radius) {
+  // Horizontal coordinates: 2D, the in-plane direction across gravity; 3D, two across it.
+  Eigen::Vector3d e1, e2 = Eigen::Vector3d::Zero();
+  if (dimension == 2) {
+    e1 = Eigen::Vector3d(-down.y(), down.x(), 0.0);
+  } else {
+    Eigen::Index least = 0;
+    down.cwiseAbs().minCoeff(&least);
+    e1 = down.cross(Eigen::Vector3d::Unit(least)).normalized();
+    e2 = down.cross(e1);
+  }
+  struct Point {
+    long bx, by;  // bin of side `radius`
+    double u, v;
+    std::size_t p;
+  };
+  std::vector<Point> points(count);
+  for (std::size_t p = 0; p < count; ++p) {
+    const Eigen::Vector3d x = frame_point(last, p);
+    const double u = x.dot(e1), v = x.dot(e2);
+    points[p] = {std::lround(std::floor(u / radius)), std::lround(std::floor(v / radius)), u, v, p};
+  }
+  std::sort(points.begin(), points.end(), [](const Point& a, const Point& b) {
+    return a.bx != b.bx ? a.bx < b.bx : a.by < b.by;
+  });
+  const double area = dimension == 2 ? 2.0 * radius : std::numbers::pi * radius * radius;
+  std::vector<double> depth(count, 0.0);
+  for (const Point& a : points) {
+    double sum = 0.0;
+    for (long bx = a.bx - 1; bx <= a.bx + 1; ++bx) {
+      // The bins (bx, a.by - 1 .. a.by + 1) are one run of the sorted list.
+      auto lo = std::lower_bound(points.begin(), points.end(), std::pair{bx, a.by - 1},
+                                 [](const Point& q, const std::pair<long, long>& key) {
+                                   return q.bx != key.first ? q.bx < key.first : q.by < key.second;
+                                 });
+      for (; lo != points.end() && lo->bx == bx && lo->by <= a.by + 1; ++lo) {
+        const double du = lo->u - a.u, dv = lo->v - a.v;
+        if (du * du + dv * dv <= radius * radius) sum += first.volume[lo->p];
+      }
+    }
+    depth[a.p] = sum / area;
+  }
+  return depth;
+}
+
 /// What a hazard engineer reads first: how far the flow ran, where its mass went, whether mass
 /// was kept, and what each retaining wall holds back. Horizontal means perpendicular to gravity
 /// (all directions when there is none), so the numbers do not depend on how the scene is turned.
+///
+/// `runout_distance` is the furthest any particle travelled: a single particle's, which a finer
+/// spacing pushes further (a thinner tail of the deposit can form; docs/validation.md, column
+/// collapse). `runout_at_depth` gives, for each of the scene's `runout_depths`, the furthest any
+/// particle travelled among those where the deposit is at least that deep (deposit_depth() over
+/// a radius of 2 h), which converges as the spacing shrinks when the depth is one the coarsest
+/// spacing resolves (at least half a cell).
 nlohmann::json flow_summary(const Scene& scene, const ParticleFrame& first,
                             const ParticleFrame& last) {
   Eigen::Vector3d down = Eigen::Vector3d::Zero();
@@ -223,11 +285,27 @@ nlohmann::json flow_summary(const Scene& scene, const ParticleFrame& first,
   }
   if (m0 > 0.0) c0 /= m0;
   if (m1 > 0.0) c1 /= m1;
+  nlohmann::json at_depth = nlohmann::json::array();
+  if (scene.dimension > 1 && down.norm() > 0.0 && n > 0) {
+    const double radius = 2.0 * scene.spacing;
+    const std::vector<double> depth = deposit_depth(first, last, n, scene.dimension, down, radius);
+    std::vector<double> depths = scene.runout_depths;
+    if (depths.empty()) depths.push_back(scene.spacing * scene.resolution);
+    for (const double d : depths) {
+      double reach = 0.0;
+      for (std::size_t p = 0; p < n; ++p) {
+        if (depth[p] < d) continue;
+        reach = std::max(reach, horizontal(frame_point(last, p) - frame_point(first, p)).norm());
+      }
+      at_depth.push_back({{"depth", d}, {"distance", reach}, {"radius", radius}});
+    }
+  }
   nlohmann::json out = {
       {"mass_initial", m0},
       {"mass_final", m1},
       {"mass_relative_change", m0 > 0.0 ? (m1 - m0) / m0 : 0.0},
       {"runout_distance", runout},
+      {"runout_at_depth", at_depth},
       {"centroid_travel", horizontal(c1 - c0).norm()},
       {"final_volume", volume},
   };

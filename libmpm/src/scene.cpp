@@ -776,6 +776,22 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
     if (scene.history_interval < 0.0) {
       output.fail_at(output.child("history_interval"), "expected a number >= 0 (0: every step)");
     }
+    if (output.has("runout_depths")) {
+      const json& depths = output.required("runout_depths");
+      if (!depths.is_array() || depths.empty()) {
+        output.fail_at(output.child("runout_depths"),
+                       "expected a non-empty array of depths in metres, got " + describe(depths));
+      }
+      scene.runout_depths.clear();
+      for (std::size_t i = 0; i < depths.size(); ++i) {
+        const json& d = depths[i];
+        if (!d.is_number() || !(d.get<double>() > 0.0) || !std::isfinite(d.get<double>())) {
+          output.fail_at(output.child("runout_depths") + "/" + std::to_string(i),
+                         "expected a positive depth in metres, got " + describe(d));
+        }
+        scene.runout_depths.push_back(d.get<double>());
+      }
+    }
     if (output.has("retaining_walls")) {
       const json& names = output.required("retaining_walls");
       if (!names.is_array()) {

@@ -663,6 +663,56 @@ TEST_F(CommandLine, WallImpulsesCloseTheMomentumBalance) {
   EXPECT_LT(summary.at("walls").at("ymin").at("impulse_vector")[1].get<double>(), -0.5 * weight);
 }
 
+// The run-out at a deposit depth (summary.json flow.runout_at_depth) ignores material thinner
+// than that depth. On a slip floor (no horizontal force) an elastic block 0.2 m deep slides at
+// 1 m/s and a sheet one particle thick (half a cell, 0.025 m) at 2 m/s ahead of it; APIC carries
+// both translations exactly, so after 0.5 s the furthest particle travelled 1.0 m (the sheet) and
+// the furthest among those where the deposit is at least 0.1 m deep 0.5 m (the block). The only
+// other motion is the block settling under its weight, rho g T / E ~ 2e-5 of its size: the
+// tolerance, 1 mm, is far above it and far below the 0.5 m that separates the two answers.
+TEST_F(CommandLine, RunoutAtDepthIgnoresAThinSheetThatTravelsFurther) {
+  json scene = scene_2d();
+  scene["grid"] = {{"min", {0.0, 0.0}}, {"max", {3.0, 0.5}}, {"spacing", 0.05}};
+  scene["materials"][0]["youngs_modulus"] = 1.0e7;
+  scene["bodies"] = json::array();
+  scene["bodies"].push_back({{"name", "block"},
+                             {"material", "rubber"},
+                             {"shape", {{"type", "box"}, {"min", {0.2, 0.0}}, {"max", {0.6, 0.2}}}},
+                             {"velocity", {1.0, 0.0}},
+                             {"particles_per_cell", 2}});
+  scene["bodies"].push_back(
+      {{"name", "sheet"},
+       {"material", "rubber"},
+       {"shape", {{"type", "box"}, {"min", {1.0, 0.0}}, {"max", {1.4, 0.025}}}},
+       {"velocity", {2.0, 0.0}},
+       {"particles_per_cell", 2}});
+  scene["walls"] = json::array({{{"face", "ymin"}, {"condition", "slip"}}});
+  scene["time"]["end"] = 0.5;
+  scene["output"] = {{"interval", 0.5}, {"history_interval", 0.5}, {"runout_depths", {0.01, 0.1}}};
+  write_scene(scene);
+  const RunResult r = run_scene({"-j", "1"});
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const json flow = read_summary().at("flow");
+  EXPECT_NEAR(flow.at("runout_distance").get<double>(), 1.0, 1e-3);
+  const json& at_depth = flow.at("runout_at_depth");
+  ASSERT_EQ(at_depth.size(), 2u);
+  EXPECT_EQ(at_depth[0].at("depth").get<double>(), 0.01);
+  EXPECT_NEAR(at_depth[0].at("distance").get<double>(), 1.0, 1e-3);  // the sheet is 0.025 deep
+  EXPECT_EQ(at_depth[1].at("depth").get<double>(), 0.1);
+  EXPECT_NEAR(at_depth[1].at("distance").get<double>(), 0.5, 1e-3);  // the block only
+  EXPECT_EQ(at_depth[1].at("radius").get<double>(), 0.1);            // 2 h
+}
+
+TEST_F(CommandLine, RejectsNonPositiveRunoutDepth) {
+  json scene = scene_2d();
+  scene["output"]["runout_depths"] = {0.5, -1.0};
+  write_scene(scene);
+  expect_rejected("/output/runout_depths/1", {"expected a positive depth in metres", "-1"});
+  scene["output"]["runout_depths"] = json::array();
+  write_scene(scene);
+  expect_rejected("/output/runout_depths", {"expected a non-empty array of depths"});
+}
+
 TEST_F(CommandLine, RefusesToOverwriteEarlierResult) {
   write_scene(scene_2d());
   ASSERT_EQ(run_scene().exit_code, 0);

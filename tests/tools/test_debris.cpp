@@ -26,8 +26,8 @@ namespace fs = std::filesystem;
 const fs::path kScene = fs::path(MPM_DATA_DIR) / "scenes" / "debris_wall.json";
 
 struct Outcome {
-  double peak_force = 0.0, peak_time = 0.0, impulse = 0.0, runout = 0.0, mass_change = 1.0,
-         retained = 0.0;
+  double peak_force = 0.0, peak_time = 0.0, impulse = 0.0, runout = 0.0, runout_deep = 0.0,
+         mass_change = 1.0, retained = 0.0;
 };
 
 Outcome run(json doc, const std::string& label) {
@@ -47,13 +47,16 @@ Outcome run(json doc, const std::string& label) {
   o.peak_time = summary["walls"]["slope_barrier"]["peak_force_time"].get<double>();
   o.impulse = summary["walls"]["slope_barrier"]["impulse"].get<double>();
   o.runout = summary["flow"]["runout_distance"].get<double>();
+  // The first of the scene's runout_depths (the shipped scene's: two particle layers deep).
+  o.runout_deep = summary["flow"]["runout_at_depth"][0]["distance"].get<double>();
   o.mass_change = summary["flow"]["mass_relative_change"].get<double>();
   o.retained =
       summary["flow"]["retaining_walls"]["slope_barrier"]["volume_on_source_side"].get<double>();
   std::printf(
-      "%s: peak barrier force %.4g N at %.3f s, barrier impulse %.4g N s, run-out %.4g m, "
-      "retained %.4g m^3\n",
-      label.c_str(), o.peak_force, o.peak_time, o.impulse, o.runout, o.retained);
+      "%s: peak barrier force %.4g N at %.3f s, barrier impulse %.4g N s, run-out %.4g m "
+      "(%.4g m where the deposit is %g m deep), retained %.4g m^3\n",
+      label.c_str(), o.peak_force, o.peak_time, o.impulse, o.runout, o.runout_deep,
+      summary["flow"]["runout_at_depth"][0]["depth"].get<double>(), o.retained);
   fs::remove_all(out);
   return o;
 }
@@ -159,17 +162,20 @@ void expect_turned_scenes_agree(const json& base, const std::vector<Eigen::Vecto
     EXPECT_NEAR(b.mass_change, 0.0, 1e-12);
     EXPECT_NEAR(b.peak_force / a.peak_force, 1.0, peak_tolerance) << "rotation " << k;
     EXPECT_NEAR(b.runout / a.runout, 1.0, 0.05) << "rotation " << k;
+    EXPECT_NEAR(b.runout_deep / a.runout_deep, 1.0, 0.05) << "rotation " << k;
     EXPECT_NEAR(b.impulse / a.impulse, 1.0, 0.05) << "rotation " << k;
     const std::string tag = "rotation" + std::to_string(k) + "_";
     ::testing::Test::RecordProperty(tag + "peak_force_ratio",
                                     std::to_string(b.peak_force / a.peak_force));
     ::testing::Test::RecordProperty(tag + "impulse_ratio", std::to_string(b.impulse / a.impulse));
     ::testing::Test::RecordProperty(tag + "runout_ratio", std::to_string(b.runout / a.runout));
+    ::testing::Test::RecordProperty(tag + "runout_at_depth_ratio",
+                                    std::to_string(b.runout_deep / a.runout_deep));
     std::printf(
-        "rotated (%d) / aligned: peak force %.4f, impulse %.4f, run-out %.4f, retained volume "
-        "%.3f\n",
+        "rotated (%d) / aligned: peak force %.4f, impulse %.4f, run-out %.4f (at depth %.4f), "
+        "retained volume %.3f\n",
         static_cast<int>(k), b.peak_force / a.peak_force, b.impulse / a.impulse,
-        b.runout / a.runout, b.retained / a.retained);
+        b.runout / a.runout, b.runout_deep / a.runout_deep, b.retained / a.retained);
   }
 }
 

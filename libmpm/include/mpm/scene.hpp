@@ -132,6 +132,10 @@ struct Scene {
   std::optional<double> fixed_dt;  ///< set: fixed step; unset: adaptive from the CFL number
   double output_interval = 0.0;
   double history_interval = 0.0;  ///< 0: every step
+  /// Deposit depths (m) at which summary.json reports a run-out: the furthest any particle
+  /// travelled among those where the deposit is at least that deep (output.runout_depths;
+  /// empty: the file's spacing, spacing x resolution, which `--resolution` does not change).
+  std::vector<double> runout_depths;
   /// Dual-grid walls (or parts) whose retained volume summary.json reports: the particle volume
   /// on the source side of the vertical plane through the wall's centre that faces the source.
   struct RetainingWall {
