@@ -5,7 +5,8 @@ Runs build/bin/mpm on generated 2D (plane strain) scenes in a temporary folder, 
 markdown tables of docs/validation.md, writes docs/validation.json and docs/img/validation_*.png.
 Needs python3-matplotlib and python3-h5py (Debian). From anywhere, after a release build:
 
-    /usr/bin/python3 docs/scripts/validation_study.py [collapse] [collapse-study] [dambreak] [impact]
+    /usr/bin/python3 docs/scripts/validation_study.py [collapse] [collapse-study] [collapse-depth]
+                                                      [dambreak] [impact]
 
 (1) Granular column collapse (Drucker-Prager, phi = 30 deg, on a rough floor with a smooth back
     wall) for aspect ratios a = H0/L0 from 0.5 to 6: normalised run-out (L_inf - L0)/L0 against
@@ -201,6 +202,50 @@ def collapse_study(work):
     return rows
 
 
+# The front at a deposit depth (`collapse-depth`, ~3 min): the particle front above grows by
+# about 0.4 L0 per halving of h at a = 1 while the bulk converges; the front where the deposit is
+# at least delta deep converges once delta is resolved. Same measure as summary.json's
+# flow.runout_at_depth (run.cpp, deposit_depth()): the placement volume (first frame) of the
+# particles within 2 h horizontally, over the segment's length 4 h.
+DEPTHS = [0.002, 0.005, 0.01, 0.02]
+
+
+def deposit_depth(x, v0, radius):
+    order = np.argsort(x)
+    xs = x[order]
+    cumulative = np.concatenate([[0.0], np.cumsum(v0[order])])
+    lo = np.searchsorted(xs, xs - radius, "left")
+    hi = np.searchsorted(xs, xs + radius, "right")
+    depth = np.empty_like(x)
+    depth[order] = (cumulative[hi] - cumulative[lo]) / (2.0 * radius)
+    return depth
+
+
+def collapse_depth(work):
+    rows = []
+    for a, cells in [(1.0, 8), (1.0, 16), (1.0, 32), (1.0, 64), (3.0, 8), (3.0, 16), (3.0, 32)]:
+        h = L0 / cells
+        out, summary = run(collapse_scene(a, h), f"depth_{a}_{cells}", work)
+        history = list(frames(out))
+        x, v0 = history[-1][1][:, 0], history[0][2]
+        depth = deposit_depth(x, v0, 2.0 * h)
+        fronts = [float((x[depth >= d].max() - L0) / L0) for d in DEPTHS]
+        rows.append({"a": a, "cells": cells, "particle_front": (front(x, h) - L0) / L0,
+                     "depth_fronts": fronts, "lube": lube(a),
+                     "centroid": summary["flow"]["centroid_travel"] / L0,
+                     "status": summary["status"]})
+        print(f"a = {a}, L0/h = {cells}: {rows[-1]['particle_front']:.3f}, "
+              + ", ".join(f"{f:.3f}" for f in fronts), file=sys.stderr)
+    heads = " | ".join(f"depth >= {1000 * d:g} mm" for d in DEPTHS)
+    print(f"| a | L0 / h | particle front | {heads} | Lube et al. | centroid travel / L0 |")
+    print("|---|---|---|" + "---|" * len(DEPTHS) + "---|---|")
+    for r in rows:
+        cells = " | ".join(f"{f:.3f}" for f in r["depth_fronts"])
+        print(f"| {r['a']:g} | {r['cells']} | {r['particle_front']:.3f} | {cells} | "
+              f"{r['lube']:.2f} | {r['centroid']:.3f} |")
+    return rows
+
+
 # --- (2) dam break ------------------------------------------------------------------------------
 
 def dambreak(work):
@@ -311,6 +356,8 @@ def main():
             results["collapse"] = collapse(work)
         if "collapse-study" in which:
             results["collapse_study"] = collapse_study(work)
+        if "collapse-depth" in which:
+            results["collapse_depth"] = collapse_depth(work)
         if "dambreak" in which:
             results["dambreak"] = dambreak(work)
         if "impact" in which:
