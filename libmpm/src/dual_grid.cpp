@@ -647,7 +647,7 @@ void Solver<D>::layer_couple(bool remapped) {
     // the remapped velocities of MUSL; all D components in one solve. The blocks are the wall's
     // scratch (sized once per active set).
     using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
-    auto solve = [&](NodeArray<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
+    auto solve = [&](NodeField<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
       const auto ng = static_cast<Eigen::Index>(w.grid_rows.size());
       const auto nl = static_cast<Eigen::Index>(w.layer_rows.size());
       const Eigen::Index k = w.grid_active.cols();

@@ -249,7 +249,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
 // box walls already applied) and the boundary-grid momenta, the coupled velocities, with the
 // wall's multipliers when `constrained`. Impulses go to the wall's parts when `record`.
 template <int D>
-void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
+void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
                                const std::vector<Vec<D>>& alpha_momentum,
                                std::vector<Vec<D>>& valpha, bool constrained, bool record) {
   EnhancedState<D>& e = w.enh;
@@ -552,7 +552,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
 
 #define MPM_ENHANCED_MEMBERS(D)                                                                   \
   template void Solver<D>::enhanced_assemble(DualWall<D>&);                                       \
-  template void Solver<D>::enhanced_solve(DualWall<D>&, NodeArray<Vec<D>>&,                       \
+  template void Solver<D>::enhanced_solve(DualWall<D>&, NodeField<Vec<D>>&,                       \
                                           const std::vector<Vec<D>>&, std::vector<Vec<D>>&, bool, \
                                           bool);
 

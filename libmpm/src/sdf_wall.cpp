@@ -109,7 +109,7 @@ void Solver<D>::setup_sdf_wall(const DualWallSpec& spec) {
 }
 
 template <int D>
-void Solver<D>::constrain_sdf_walls(NodeArray<Vec<D>>& velocity, bool record) {
+void Solver<D>::constrain_sdf_walls(NodeField<Vec<D>>& velocity, bool record) {
   for (const SdfWall& wall : sdf_) {
     Vec<D> impulse = Vec<D>::Zero();
     std::visit(
@@ -131,7 +131,7 @@ void Solver<D>::constrain_sdf_walls(NodeArray<Vec<D>>& velocity, bool record) {
 
 #define MPM_SDF_MEMBERS(D)                                      \
   template void Solver<D>::setup_sdf_wall(const DualWallSpec&); \
-  template void Solver<D>::constrain_sdf_walls(NodeArray<Vec<D>>&, bool);
+  template void Solver<D>::constrain_sdf_walls(NodeField<Vec<D>>&, bool);
 
 MPM_SDF_MEMBERS(1)
 MPM_SDF_MEMBERS(2)

@@ -324,11 +324,16 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
     for (int b = 0; b < 3; ++b) mc[a][b] = m * C[a][b];
   }
   const int(&k_offset)[S] = st.offset[2];
-  // array[row + k_offset[k]][a] += x_a u[3k + a] + y_a z[3k + a] over the row's S nodes (x, y
-  // repeated per node so that the update is one vector expression when the row is contiguous).
-  auto rows = [&](auto contiguous) {
+  // The arrays with the layout fixed at compile time: a blocked index costs a shift, a mask
+  // and a multiply by a constant, where the plain array's costs none.
+  auto rows = [&](auto contiguous, auto array_of) {
     constexpr bool kContiguous = decltype(contiguous)::value;
-    auto add_row = [&](NodeArray<Vec<3>>& array, int row, const double(&x)[3], const double* u,
+    const auto mass = array_of(grid.mass);
+    const auto momentum = array_of(grid.momentum);
+    const auto force = array_of(grid.force);
+    // array[row + k_offset[k]][a] += x_a u[3k + a] + y_a z[3k + a] over the row's S nodes (x, y
+    // repeated per node so that the update is one vector expression when the row is contiguous).
+    auto add_row = [&](const auto& array, int row, const double(&x)[3], const double* u,
                        const double(&y)[3], const double* z) {
       double xr[R], yr[R];
       for (int c = 0; c < R; ++c) {
@@ -357,7 +362,7 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
           p[a] = wij * (mv[a] + mc[a][0] * dx[0][i] + mc[a][1] * dx[1][j]);
           q[a] = wij * mc[a][2];
         }
-        add_row(grid.momentum, row, p, w2, q, wx2);
+        add_row(momentum, row, p, w2, q, wx2);
         if (body_force == nullptr) continue;
         const auto& mb = *body_force;
         const auto& vs = *stress;
@@ -366,19 +371,26 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
           r[a] = wij * mb[a] + vs[a][0] * dw[0][i] * w[1][j] + vs[a][1] * w[0][i] * dw[1][j];
           t[a] = wij * vs[a][2];
         }
-        add_row(grid.force, row, r, w2, t, dw2);
+        add_row(force, row, r, w2, t, dw2);
         const double wm = wij * m;
         for (int k = 0; k < S; ++k) {
           const int node = kContiguous ? row + k_offset[0] + k : row + k_offset[k];
-          grid.mass[static_cast<std::size_t>(node)] += wm * w[2][k];
+          mass[static_cast<std::size_t>(node)] += wm * w[2][k];
         }
       }
     }
   };
+  auto rows_in = [&](auto contiguous) {
+    if (grid.sparse) {
+      rows(contiguous, [&](const auto& a) { return grid.template access<true>(a); });
+    } else {
+      rows(contiguous, [&](const auto& a) { return grid.template access<false>(a); });
+    }
+  };
   if (st.row_contiguous) {
-    rows(std::true_type{});
+    rows_in(std::true_type{});
   } else {
-    rows(std::false_type{});
+    rows_in(std::false_type{});
   }
 }
 
@@ -481,15 +493,25 @@ void Solver<D>::for_each_active_node(F&& f) {
 
 template <int D>
 void Solver<D>::update_grid(double dt) {
-  for_each_active_node([&](std::size_t n) {
-    node_velocities<D>(grid.mass[n], grid.momentum[n], grid.force[n], dt, mass_threshold_,
-                       grid.velocity[n], grid.velocity_new[n]);
+  tbb::parallel_for(std::size_t{0}, grid.active_blocks.size(), [&](std::size_t b) {
+    grid.for_each_run(grid.active_blocks[b], [&](int first, int count) {
+      // A run's nodes are adjacent in every array.
+      const auto n = static_cast<std::size_t>(first);
+      const double* m = &grid.mass[n];
+      const Vec<D>* p = &grid.momentum[n];
+      const Vec<D>* f = &grid.force[n];
+      Vec<D>* v = &grid.velocity[n];
+      Vec<D>* v_new = &grid.velocity_new[n];
+      for (int k = 0; k < count; ++k) {
+        node_velocities<D>(m[k], p[k], f[k], dt, mass_threshold_, v[k], v_new[k]);
+      }
+    });
   });
   layer_update(dt);
 }
 
 template <int D>
-void Solver<D>::constrain_walls(NodeArray<Vec<D>>& velocity, bool record) {
+void Solver<D>::constrain_walls(NodeField<Vec<D>>& velocity, bool record) {
   for (std::size_t w = 0; w < scene_.walls.size(); ++w) {
     const BoxWall& wall = scene_.walls[w];
     Vec<D> normal = Vec<D>::Zero();
@@ -578,23 +600,45 @@ enum SampleParts : unsigned { kIncrement = 1U, kGradient = 2U, kMoment = 4U };
 // offsets locate each node (a row of the sparse layout may cross a block).
 template <unsigned Parts, bool Dense, class Shape>
 bool sample_grid_factorised(const Grid<3>& grid, const Stencil<3, Shape>& st,
-                            const NodeArray<Vec<3>>& v, const NodeArray<Vec<3>>& v_old,
+                            const NodeField<Vec<3>>& v, const NodeField<Vec<3>>& v_old,
                             double threshold, GridSample<3>& s) {
   constexpr int S = Shape::support;
   constexpr bool kG = (Parts & kGradient) != 0, kM = (Parts & kMoment) != 0;
   constexpr bool kI = (Parts & kIncrement) != 0;
-  int k_offset[S];  // node k of a row is row(i, j) + k_offset[k]
-  for (int k = 0; k < S; ++k) k_offset[k] = Dense ? k : st.offset[2][k];
   const int first = st.offset[0][0] + st.offset[1][0] + st.offset[2][0];  // the stencil's
   const int s0 = grid.local_stride[0], s1 = grid.local_stride[1];         // dense: the strides
-  auto row_of = [&](int i, int j) {
-    return Dense ? first + i * s0 + j * s1 : st.offset[0][i] + st.offset[1][j];
+  auto row_of = [&](int i, int j) { return first + i * s0 + j * s1; };    // dense
+  // Node (i, j, k) of an array of Size-byte values is at base + row(i, j) + along(k) bytes:
+  // dense, the row's first node and k values on; sparse, the per-axis byte offsets summed
+  // (Grid::byte_offset(), so the blocked layout costs no more than a table lookup per axis).
+  constexpr std::ptrdiff_t kScalar = sizeof(double), kVector = sizeof(Vec<3>);
+  std::ptrdiff_t o_scalar[3][S], o_vector[3][S];
+  if constexpr (!Dense) {
+    for (int d = 0; d < 3; ++d) {
+      for (int k = 0; k < S; ++k) {
+        o_scalar[d][k] = grid.template byte_offset<kScalar>(st.offset[d][k]);
+        o_vector[d][k] = grid.template byte_offset<kVector>(st.offset[d][k]);
+      }
+    }
+  }
+  auto row_bytes = [&](int i, int j, std::ptrdiff_t size, const std::ptrdiff_t(&o)[3][S]) {
+    if constexpr (Dense) return row_of(i, j) * size;
+    return o[0][i] + o[1][j];
   };
+  auto along = [&](int k, std::ptrdiff_t size, const std::ptrdiff_t(&o)[3][S]) {
+    if constexpr (Dense) return k * size;
+    return o[2][k];
+  };
+  const char* mass = grid.mass.base();
+  const char* vnew = v.base();
+  const char* vold = v_old.base();
   bool full = true;
   for (int i = 0; i < S; ++i) {
     for (int j = 0; j < S; ++j) {
-      const double* m = grid.mass.data() + row_of(i, j);
-      for (int k = 0; k < S; ++k) full &= m[k_offset[k]] > threshold;
+      const char* row = mass + row_bytes(i, j, kScalar, o_scalar);
+      for (int k = 0; k < S; ++k) {
+        full &= *reinterpret_cast<const double*>(row + along(k, kScalar, o_scalar)) > threshold;
+      }
     }
   }
   if (!full) return false;
@@ -615,17 +659,18 @@ bool sample_grid_factorised(const Grid<3>& grid, const Stencil<3, Shape>& st,
   for (int i = 0; i < S; ++i) {
     double jv[3] = {}, jinc[3] = {}, jdy[3] = {}, jdz[3] = {}, jmy[3] = {}, jmz[3] = {};
     for (int j = 0; j < S; ++j) {
-      const int row = row_of(i, j);
+      const std::ptrdiff_t row = row_bytes(i, j, kVector, o_vector);
       double kv[3] = {}, kinc[3] = {}, kd[3] = {}, km[3] = {};
       for (int k = 0; k < S; ++k) {
-        const double* vn = v[static_cast<std::size_t>(row + k_offset[k])].data();
+        const std::ptrdiff_t node = row + along(k, kVector, o_vector);
+        const auto* vn = reinterpret_cast<const double*>(vnew + node);
         for (int a = 0; a < 3; ++a) {
           kv[a] += w[2][k] * vn[a];
           if constexpr (kG) kd[a] += dw[2][k] * vn[a];
           if constexpr (kM) km[a] += wx[2][k] * vn[a];
         }
         if constexpr (kI) {
-          const double* vo = v_old[static_cast<std::size_t>(row + k_offset[k])].data();
+          const auto* vo = reinterpret_cast<const double*>(vold + node);
           for (int a = 0; a < 3; ++a) kinc[a] += w[2][k] * (vn[a] - vo[a]);
         }
       }
@@ -675,27 +720,25 @@ bool sample_grid_factorised(const Grid<3>& grid, const Stencil<3, Shape>& st,
   return true;
 }
 
-template <unsigned Parts, int D, class Shape>
-GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
-                          const NodeArray<Vec<D>>& v, const NodeArray<Vec<D>>& v_old,
-                          double threshold) {
-  if constexpr (D == 3) {
-    GridSample<3> s;
-    if (grid.sparse ? sample_grid_factorised<Parts, false>(grid, st, v, v_old, threshold, s)
-                    : sample_grid_factorised<Parts, true>(grid, st, v, v_old, threshold, s)) {
-      return s;
-    }
-  }
+// The node loop of sample_grid() with the grid's layout fixed at compile time.
+template <unsigned Parts, bool Sparse, int D, class Shape>
+GridSample<D> sample_grid_nodes(const Grid<D>& grid, const Stencil<D, Shape>& st,
+                                const NodeField<Vec<D>>& v, const NodeField<Vec<D>>& v_old,
+                                double threshold) {
+  const auto mass = grid.template access<Sparse>(grid.mass);
+  const auto vnew = grid.template access<Sparse>(v);
+  const auto vold = grid.template access<Sparse>(v_old);
   double weight = 0.0;
   double value[D] = {}, increment[D] = {}, grad_sum[D] = {}, dx_sum[D] = {};
   double gradient[D][D] = {}, moment[D][D] = {};
   st.for_each(grid, [&](int node, double N, const Vec<D>& dN, const Vec<D>& dx) {
-    if (grid.mass[node] <= threshold) return;
-    const double* vn = v[node].data();
+    const auto n = static_cast<std::size_t>(node);
+    if (mass[n] <= threshold) return;
+    const double* vn = vnew[n].data();
     weight += N;
     for (int a = 0; a < D; ++a) value[a] += N * vn[a];
     if constexpr ((Parts & kIncrement) != 0) {
-      const double* vo = v_old[node].data();
+      const double* vo = vold[n].data();
       for (int a = 0; a < D; ++a) increment[a] += N * (vn[a] - vo[a]);
     }
     if constexpr ((Parts & kGradient) != 0) {
@@ -725,6 +768,21 @@ GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
     }
   }
   return s;
+}
+
+template <unsigned Parts, int D, class Shape>
+GridSample<D> sample_grid(const Grid<D>& grid, const Stencil<D, Shape>& st,
+                          const NodeField<Vec<D>>& v, const NodeField<Vec<D>>& v_old,
+                          double threshold) {
+  if constexpr (D == 3) {
+    GridSample<3> s;
+    if (grid.sparse ? sample_grid_factorised<Parts, false>(grid, st, v, v_old, threshold, s)
+                    : sample_grid_factorised<Parts, true>(grid, st, v, v_old, threshold, s)) {
+      return s;
+    }
+  }
+  return grid.sparse ? sample_grid_nodes<Parts, true>(grid, st, v, v_old, threshold)
+                     : sample_grid_nodes<Parts, false>(grid, st, v, v_old, threshold);
 }
 
 // Gather the new velocity (and for FLIP the displacement) at x_p^n. APIC keeps C_p = B_p D_p^{-1}

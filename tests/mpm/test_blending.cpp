@@ -392,7 +392,7 @@ FreeFlight free_flight(const json& doc, const Vec<D>& origin, const Vec<D>& norm
     // This step's nodal masses: each particle must have been given to exactly one grid
     // (Blending) or to the standard grid (Enhanced: the boundary grid only adds to it).
     double grid_mass = 0.0;
-    for (double m : s.grid.mass) grid_mass += m;
+    for (std::size_t n = 0; n < s.grid.size(); ++n) grid_mass += s.grid.mass[n];
     for (const auto& w : s.dual_walls()) {
       if (w.enhanced) continue;
       for (double m : w.mass) grid_mass += m;

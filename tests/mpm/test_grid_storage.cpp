@@ -143,10 +143,13 @@ TEST(GridStorage, SparseGridHoldsMemoryWhereTheBodyIsAndReturnsIt) {
     most = std::max(most, static_cast<double>(s.grid.committed_bytes()));
   }
   EXPECT_GT(s.particles.position[0].x(), 4.0);
-  // Pages are 4 kB (8 blocks of masses, 2.7 of vectors): a small body's blocks share few
-  // pages with others, so hold it to 4 times its active blocks (the block's own need, ~0.5 MB).
+  // A block's five arrays are stored together (6.5 kB): it overlaps at most 3 pages of 4 kB
+  // (12 kB, 1.85 times its need), and the blocks the body left up to 48 steps ago (idle for
+  // kReleaseAfter = 32 steps, released every 16) may still be held: 0.27 m at this speed, 1.4
+  // blocks behind a body whose active blocks are 4 wide. So at most 1.85 x 5.4 / 4 = 2.5 times
+  // what the active blocks need; the bound is 3 (measured 1.9; 2.9 with the arrays apart).
   const double active = static_cast<double>(s.grid.peak_active);
-  EXPECT_LT(most, 4.0 * active) << "most " << most << " active " << active;
+  EXPECT_LT(most, 3.0 * active) << "most " << most << " active " << active;
   EXPECT_LT(most, 0.1 * box);
   // What the process really holds agrees: far below the dense box.
   const long after = resident_kb();

@@ -41,13 +41,14 @@ void node_velocities(double m, const Vec<D>& momentum, const Vec<D>& force, doub
 /// - dense: node index sum_d i_d stride_d, last axis fastest (for a box the material fills);
 /// - sparse: by blocks of kBlock^D nodes, a node's index its block's place in storage times
 ///   kBlockNodes plus its place in the block (last axis fastest), so that a block's nodes are
-///   one contiguous run of every array. Blocks are stored in Morton (Z) order, so the blocks a
-///   4 kB page holds (8 of masses, 2.7 of vectors) are neighbours in every direction, not a
-///   column along one axis. The arrays span the box in address space (more: Morton order pads
-///   each axis to a power of two), but memory backs only the pages of blocks that have held
-///   particles (NodeArray), and pages whose blocks have been idle for kReleaseAfter steps are
-///   handed back. A hillside's box is mostly air: its grid then costs what the flow covers,
-///   not what the box holds.
+///   one contiguous run of every array; and a block's five arrays are stored together
+///   (kBlockBytes, 6.5 kB in 3D: NodeField), so a page holds parts of at most two or three
+///   blocks. Blocks are stored in Morton (Z) order, so neighbouring blocks in storage are
+///   neighbours in every direction, not a column along one axis. The storage spans the box in
+///   address space (more: Morton order pads each axis to a power of two), but memory backs only
+///   the pages of blocks that have held particles (PageBuffer), and pages whose blocks have
+///   been idle for kReleaseAfter steps are handed back. A hillside's box is mostly air: its grid
+///   then costs what the flow covers, not what the box holds.
 /// Both layouts number nodes separably (linear(i) = sum_d axis_offset(d, i_d)); code that
 /// forms node indices through linear(), axis_offset() or the Stencil serves both.
 template <int D>
@@ -57,19 +58,46 @@ struct Grid {
   double inv_h = 1.0;
   Index<D> nodes = Index<D>::Ones();  ///< nodes per axis (the box; storage is padded to blocks)
 
-  NodeArray<double> mass;
-  NodeArray<Vec<D>> momentum;
-  NodeArray<Vec<D>> force;
-  NodeArray<Vec<D>> velocity;      ///< v_I^n = p_I / m_I (before the force update)
-  NodeArray<Vec<D>> velocity_new;  ///< v_I^{n+1} after forces and wall conditions
+  NodeField<double> mass;
+  NodeField<Vec<D>> momentum;
+  NodeField<Vec<D>> force;
+  NodeField<Vec<D>> velocity;      ///< v_I^n = p_I / m_I (before the force update)
+  NodeField<Vec<D>> velocity_new;  ///< v_I^{n+1} after forces and wall conditions
+  /// The five arrays' memory: dense, one array after the other; sparse, block by block (a
+  /// block's masses, then its momenta, forces, velocities and new velocities: kBlockBytes).
+  PageBuffer storage;
 
   static constexpr int kBlock = 4;
   static constexpr int kBlockNodes = D == 1 ? 4 : D == 2 ? 16 : 64;  ///< kBlock^D
+  static constexpr int kBlockShift = D == 1 ? 2 : D == 2 ? 4 : 6;    ///< log2(kBlockNodes)
   /// Steps a block stays idle before its pages may be returned (a flow that comes back soon
   /// does not pay the page faults again).
   static constexpr int kReleaseAfter = 32;
   /// Bytes per node over the five arrays.
   static constexpr std::size_t kNodeBytes = sizeof(double) + 4 * sizeof(Vec<D>);
+  /// Bytes of one block of the sparse layout (all five arrays). A multiple of 16, as every
+  /// array's part of it: Eigen's 2-vectors may be accessed aligned.
+  static constexpr std::size_t kBlockBytes = kBlockNodes * kNodeBytes;
+  static_assert(kBlockNodes * sizeof(double) % 16 == 0 && kBlockBytes % 16 == 0);
+
+  /// A node array with its layout fixed at compile time (NodeField::Access): Sparse must be
+  /// the grid's `sparse`.
+  template <bool Sparse, class T>
+  [[nodiscard]] auto access(const NodeField<T>& array) const {
+    return array.template access<Sparse, kBlockShift, kBlockBytes>();
+  }
+
+  /// Where node index i's value lies in one of the node arrays whose values take Size bytes,
+  /// from the array's base(). Additive as node indices are: the offsets of the per-axis parts
+  /// (axis_offset(d, i_d)) sum to the node's, since in the sparse layout the axes' parts of an
+  /// index are disjoint bit fields of its block and of its place in the block.
+  template <std::size_t Size>
+  [[nodiscard]] std::ptrdiff_t byte_offset(int i) const {
+    const auto n = static_cast<std::ptrdiff_t>(i);
+    if (!sparse) return n * static_cast<std::ptrdiff_t>(Size);
+    return (n >> kBlockShift) * static_cast<std::ptrdiff_t>(kBlockBytes) +
+           (n & (kBlockNodes - 1)) * static_cast<std::ptrdiff_t>(Size);
+  }
 
   void resize(const Vec<D>& grid_origin, double spacing, const Index<D>& node_count,
               bool sparse_layout = false) {
@@ -136,11 +164,36 @@ struct Grid {
       storage_block[b] = linear((c * kBlock).eval()) / kBlockNodes;
     }
     const auto n = size();
-    mass.assign_zero(n);
-    momentum.assign_zero(n);
-    force.assign_zero(n);
-    velocity.assign_zero(n);
-    velocity_new.assign_zero(n);
+    if (sparse) {
+      storage.allocate(n / kBlockNodes * kBlockBytes);
+      char* block = static_cast<char*>(storage.data());
+      std::size_t at = 0;
+      auto place = [&](auto& array) {
+        using T = typename std::decay_t<decltype(array)>::value_type;
+        array.view(block + at, n, kBlockShift, kBlockBytes);
+        at += kBlockNodes * sizeof(T);
+      };
+      place(mass);
+      place(momentum);
+      place(force);
+      place(velocity);
+      place(velocity_new);
+    } else {
+      auto bytes = [&](std::size_t size) { return (n * size + 63) / 64 * 64; };
+      storage.allocate(bytes(sizeof(double)) + 4 * bytes(sizeof(Vec<D>)));
+      char* first = static_cast<char*>(storage.data());
+      std::size_t at = 0;
+      auto place = [&](auto& array) {
+        using T = typename std::decay_t<decltype(array)>::value_type;
+        array.view(first + at, n, kBlockShift, kBlockNodes * sizeof(T));  // a plain array
+        at += bytes(sizeof(T));
+      };
+      place(mass);
+      place(momentum);
+      place(force);
+      place(velocity);
+      place(velocity_new);
+    }
     block_active.assign(block_count, 0);
     half_marked.assign(static_cast<std::size_t>(halves.prod()), 0);
     const std::size_t stored = sparse ? slot_count / kBlockNodes : 0;  // pages: sparse only
@@ -338,13 +391,14 @@ struct Grid {
   void clear_previous(std::size_t k) {
     const int b = previous_blocks[k];
     const bool stays = block_active[static_cast<std::size_t>(b)] != 0;
-    for_each_run(b, [&](int first, int count) {
-      std::fill_n(mass.begin() + first, count, 0.0);
-      std::fill_n(momentum.begin() + first, count, Vec<D>::Zero());
-      std::fill_n(force.begin() + first, count, Vec<D>::Zero());
+    for_each_run(b, [&](int first, int count) {  // a run is adjacent in every array
+      const auto n = static_cast<std::size_t>(first);
+      std::fill_n(&mass[n], count, 0.0);
+      std::fill_n(&momentum[n], count, Vec<D>::Zero());
+      std::fill_n(&force[n], count, Vec<D>::Zero());
       if (stays) return;
-      std::fill_n(velocity.begin() + first, count, Vec<D>::Zero());
-      std::fill_n(velocity_new.begin() + first, count, Vec<D>::Zero());
+      std::fill_n(&velocity[n], count, Vec<D>::Zero());
+      std::fill_n(&velocity_new[n], count, Vec<D>::Zero());
     });
   }
   /// Every kReleaseAfter / 2 steps, returns to the system the pages of the arrays that hold
@@ -364,32 +418,23 @@ struct Grid {
     auto idle = [&](std::size_t b) { return last_active[b] + kReleaseAfter <= epoch; };
     const std::size_t page = PageBuffer::page_size();
     const std::size_t count = resident.size();
-    auto release_in = [&](auto& array, std::size_t b) {
+    for (std::size_t b = 0; b < count; ++b) {
+      if (resident[b] == 0 || !idle(b)) continue;
       // The pages that overlap block b; a page is returned when every block it overlaps is idle.
-      using T = typename std::decay_t<decltype(array)>::value_type;
-      const std::size_t bytes = kBlockNodes * sizeof(T);
-      const std::size_t first_page = b * bytes / page, last_page = ((b + 1) * bytes - 1) / page;
+      const std::size_t first_page = b * kBlockBytes / page;
+      const std::size_t last_page = ((b + 1) * kBlockBytes - 1) / page;
       bool all = true;
       for (std::size_t p = first_page; p <= last_page; ++p) {
-        const std::size_t lo = p * page / bytes;
-        const std::size_t hi = std::min(count - 1, ((p + 1) * page - 1) / bytes);
+        const std::size_t lo = p * page / kBlockBytes;
+        const std::size_t hi = std::min(count - 1, ((p + 1) * page - 1) / kBlockBytes);
         bool free = true;
         for (std::size_t c = lo; c <= hi && free; ++c) free = idle(c);
         if (free) {
-          array.release_bytes(p * page, page);
+          storage.release(p * page, page);
         } else {
           all = false;
         }
       }
-      return all;
-    };
-    for (std::size_t b = 0; b < count; ++b) {
-      if (resident[b] == 0 || !idle(b)) continue;
-      bool all = release_in(mass, b);
-      all &= release_in(momentum, b);
-      all &= release_in(force, b);
-      all &= release_in(velocity, b);
-      all &= release_in(velocity_new, b);
       if (all) resident[b] = 0;
     }
   }
@@ -399,21 +444,15 @@ struct Grid {
   [[nodiscard]] std::size_t committed_bytes() const {
     if (!sparse) return box_bytes();
     const std::size_t page = PageBuffer::page_size();
-    std::size_t total = 0;
-    for (const std::size_t node_bytes :
-         {sizeof(double), sizeof(Vec<D>), sizeof(Vec<D>), sizeof(Vec<D>), sizeof(Vec<D>)}) {
-      const std::size_t bytes = kBlockNodes * node_bytes;
-      std::size_t pages = 0, next = 0;  // pages counted, and the first page not yet counted
-      for (std::size_t b = 0; b < resident.size(); ++b) {
-        if (resident[b] == 0) continue;
-        const std::size_t first = std::max(next, b * bytes / page);
-        const std::size_t last = ((b + 1) * bytes - 1) / page;
-        if (last >= first) pages += last - first + 1;
-        next = last + 1;
-      }
-      total += pages * page;
+    std::size_t pages = 0, next = 0;  // pages counted, and the first page not yet counted
+    for (std::size_t b = 0; b < resident.size(); ++b) {
+      if (resident[b] == 0) continue;
+      const std::size_t first = std::max(next, b * kBlockBytes / page);
+      const std::size_t last = ((b + 1) * kBlockBytes - 1) / page;
+      if (last >= first) pages += last - first + 1;
+      next = last + 1;
     }
-    return total;
+    return pages * page;
   }
   /// Bytes the active blocks' nodes need (what a block-sparse store could not do without).
   [[nodiscard]] std::size_t active_bytes() const {

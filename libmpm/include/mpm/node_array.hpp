@@ -76,6 +76,65 @@ class NodeArray {
   std::size_t size_ = 0;
 };
 
+/// One of the grid's node arrays inside a PageBuffer that holds all of them (Grid). Values are
+/// stored by blocks of 2^shift nodes: value i is at byte (i >> shift) block_stride +
+/// (i % 2^shift) sizeof(T) from `first`. With block_stride = 2^shift sizeof(T) that is a plain
+/// array (the dense layout); with block_stride the bytes of every array's block together, a
+/// block's values of all the arrays are one run of memory (the sparse layout), so that a page
+/// holds whole blocks of every array rather than eight blocks' masses and 2.7 blocks' vectors.
+/// Nodes within one block are adjacent: code may step through a row of them by pointer.
+template <class T>
+class NodeField {
+  static_assert(std::is_trivially_destructible_v<T>, "node values must be plain data");
+
+ public:
+  using value_type = T;
+  void view(void* first, std::size_t n, int shift, std::size_t block_stride) {
+    base_ = static_cast<char*>(first);
+    size_ = n;
+    shift_ = shift;
+    mask_ = (std::size_t{1} << shift) - 1;
+    block_stride_ = block_stride;
+  }
+  [[nodiscard]] std::size_t size() const { return size_; }
+  /// The first value's address (node i is at byte_offset(i) from it: Grid::byte_offset()).
+  [[nodiscard]] char* base() const { return base_; }
+  /// The same values with the layout fixed at compile time, for the transfers' inner loops
+  /// (operator[] reads the layout from the object: a few more instructions per node):
+  /// Blocked, blocks of 2^Shift nodes BlockBytes apart; otherwise a plain array. It must be the
+  /// layout view() was given. Writable, as the field it comes from.
+  template <bool Blocked, int Shift, std::size_t BlockBytes>
+  struct Access {
+    char* base;
+    T& operator[](std::size_t i) const {
+      if constexpr (Blocked) {
+        constexpr std::size_t kMask = (std::size_t{1} << Shift) - 1;
+        return *reinterpret_cast<T*>(base + (i >> Shift) * BlockBytes + (i & kMask) * sizeof(T));
+      } else {
+        return reinterpret_cast<T*>(base)[i];
+      }
+    }
+  };
+  template <bool Blocked, int Shift, std::size_t BlockBytes>
+  [[nodiscard]] Access<Blocked, Shift, BlockBytes> access() const {
+    return {base_};
+  }
+  T& operator[](std::size_t i) {
+    return *reinterpret_cast<T*>(base_ + (i >> shift_) * block_stride_ + (i & mask_) * sizeof(T));
+  }
+  const T& operator[](std::size_t i) const {
+    return *reinterpret_cast<const T*>(base_ + (i >> shift_) * block_stride_ +
+                                       (i & mask_) * sizeof(T));
+  }
+
+ private:
+  char* base_ = nullptr;
+  std::size_t size_ = 0;
+  int shift_ = 0;
+  std::size_t mask_ = 0;
+  std::size_t block_stride_ = sizeof(T);
+};
+
 /// Compact row numbers for a few of a grid's nodes (a coupling's rows) without a grid-sized
 /// initialisation or reset: `rows` lists the nodes in row order and `row_of` (page-backed:
 /// memory only for the pages of nodes that have had a row) points back; an entry is valid when

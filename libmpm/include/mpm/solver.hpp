@@ -188,7 +188,7 @@ class Solver final : public Simulation {
   template <class F>
   void for_each_active_node(F&& f);
   void update_layer_stress(double dt);
-  void constrain_walls(NodeArray<Vec<D>>& velocity, bool record);
+  void constrain_walls(NodeField<Vec<D>>& velocity, bool record);
   // Dual-grid (boundary-grid) counterparts of the phases, in dual_grid.cpp.
   void setup_dual_walls();
   void layer_scatter(bool with_force);
@@ -201,7 +201,7 @@ class Solver final : public Simulation {
   void layer_remap();
   // The Enhanced velocity field walls, in enhanced.cpp.
   void enhanced_assemble(DualWall<D>& w);
-  void enhanced_solve(DualWall<D>& w, NodeArray<Vec<D>>& va,
+  void enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
                       const std::vector<Vec<D>>& alpha_momentum, std::vector<Vec<D>>& valpha,
                       bool constrained, bool record);
   /// Does the layer own a particle it holds (Blending), or only enhance it (Enhanced)?
@@ -210,7 +210,7 @@ class Solver final : public Simulation {
   }
   void advect_and_check(double dt);
   void setup_sdf_wall(const DualWallSpec& spec);
-  void constrain_sdf_walls(NodeArray<Vec<D>>& velocity, bool record);
+  void constrain_sdf_walls(NodeField<Vec<D>>& velocity, bool record);
   void fill_bodies();
   /// Grid storage for the scene (GridStorage): resizes the grid, after fill_bodies().
   void choose_grid_storage();
