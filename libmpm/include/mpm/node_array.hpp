@@ -45,9 +45,9 @@ class PageBuffer {
   std::size_t bytes_ = 0;
 };
 
-/// A fixed-size array of plain values (int, double, Eigen fixed-size vectors of doubles: all-zero
-/// bytes are 0, no destructor to run) over a PageBuffer, zero at assign_zero(): the part of
-/// std::vector's interface the grid uses.
+/// A fixed-size array of plain values (int, double: all-zero bytes are 0, no destructor to run)
+/// over its own PageBuffer, zero at assign_zero(): a per-node map that costs memory only where
+/// it is written (the couplings' node -> row maps, node_row()).
 template <class T>
 class NodeArray {
   static_assert(std::is_trivially_destructible_v<T>, "node values must be plain data");
@@ -64,12 +64,6 @@ class NodeArray {
   const T& operator[](std::size_t i) const { return data()[i]; }
   T* data() { return static_cast<T*>(buffer_.data()); }
   const T* data() const { return static_cast<const T*>(buffer_.data()); }
-  T* begin() { return data(); }
-  T* end() { return data() + size_; }
-  const T* begin() const { return data(); }
-  const T* end() const { return data() + size_; }
-  /// Returns the whole pages inside bytes [first, first + count) (see PageBuffer::release).
-  void release_bytes(std::size_t first, std::size_t count) { buffer_.release(first, count); }
 
  private:
   PageBuffer buffer_;
