@@ -1,8 +1,8 @@
 // The standard grid's two storage layouts (grid.hpp): dense over the box, and sparse by blocks
 // with memory only where particles have been. Both number every node once, the step gives
-// bit-identical results in either (the same sums in the same order), and a sparse grid holds
-// memory in proportion to the blocks a body covers, not to its box, and hands it back behind a
-// moving body.
+// bit-identical results in either (the same sums in the same order), a sparse block keeps its five
+// arrays in one run of memory, and a sparse grid holds memory in proportion to the blocks a body
+// covers, not to its box, and hands it back behind a moving body.
 
 #include <gtest/gtest.h>
 
@@ -11,12 +11,59 @@
 #include <fstream>
 #include <set>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "mpm/solver.hpp"
 #include "support/scenes.hpp"
 
 namespace mpm {
 namespace {
+
+/// Where every node's five values lie: inside the grid's storage, no two overlapping; in the
+/// sparse layout inside the node's block's run of kBlockBytes (a block's arrays together); at
+/// the place the compile-time layout (Grid::access) and the per-axis byte offsets
+/// (Grid::byte_offset, summed over the axes) say.
+template <int D>
+void check_memory(Grid<D>& g) {
+  const char* begin = static_cast<const char*>(g.storage.data());
+  const char* end = begin + g.storage.bytes();
+  std::vector<std::pair<const char*, std::size_t>> spans;  // (first byte, size)
+  auto check = [&](auto& array, const Index<D>& i, int n) {
+    using T = typename std::decay_t<decltype(array)>::value_type;
+    const auto node = static_cast<std::size_t>(n);
+    const char* at = reinterpret_cast<const char*>(&array[node]);
+    EXPECT_GE(at, begin);
+    EXPECT_LE(at + sizeof(T), end);
+    spans.emplace_back(at, sizeof(T));
+    const auto* fixed = reinterpret_cast<const char*>(
+        g.sparse ? &g.template access<true>(array)[node] : &g.template access<false>(array)[node]);
+    EXPECT_EQ(fixed, at) << "node " << n;
+    std::ptrdiff_t sum = 0;
+    for (int d = 0; d < D; ++d) sum += g.template byte_offset<sizeof(T)>(g.axis_offset(d, i[d]));
+    EXPECT_EQ(array.base() + sum, at) << "node " << n;
+    if (g.sparse) {
+      const std::size_t block = node / Grid<D>::kBlockNodes;
+      EXPECT_GE(at, begin + block * Grid<D>::kBlockBytes) << "node " << n;
+      EXPECT_LE(at + sizeof(T), begin + (block + 1) * Grid<D>::kBlockBytes) << "node " << n;
+    }
+  };
+  Index<D> i = Index<D>::Zero();
+  const long count = g.nodes.template cast<long>().prod();
+  for (long k = 0; k < count; ++k) {
+    const int n = g.linear(i);
+    check(g.mass, i, n);
+    check(g.momentum, i, n);
+    check(g.force, i, n);
+    check(g.velocity, i, n);
+    check(g.velocity_new, i, n);
+    for (int d = D - 1; d >= 0 && ++i[d] == g.nodes[d]; --d) i[d] = 0;
+  }
+  std::sort(spans.begin(), spans.end());
+  for (std::size_t k = 1; k < spans.size(); ++k) {
+    EXPECT_LE(spans[k - 1].first + spans[k - 1].second, spans[k].first) << "values overlap";
+  }
+}
 
 template <int D>
 void check_numbering(bool sparse) {
@@ -44,6 +91,7 @@ void check_numbering(bool sparse) {
     for (int d = D - 1; d >= 0 && ++i[d] == nodes[d]; --d) i[d] = 0;
   }
   EXPECT_EQ(static_cast<long>(seen.size()), count);
+  check_memory(g);
 }
 
 TEST(GridStorage, BothLayoutsNumberEveryNodeOnce) {
