@@ -1,8 +1,8 @@
 // The standard grid's two storage layouts (grid.hpp): dense over the box, and sparse by blocks
 // with memory only where particles have been. Both number every node once, the step gives
-// bit-identical results in either (the same sums in the same order), a sparse block keeps its five
-// arrays in one run of memory, and a sparse grid holds memory in proportion to the blocks a body
-// covers, not to its box, and hands it back behind a moving body.
+// bit-identical results in either (the same sums in the same order), a sparse block keeps its
+// five arrays in one run of memory, and a sparse grid holds memory in proportion to the blocks a
+// body covers, not to its box, and hands it back behind a moving body.
 
 #include <gtest/gtest.h>
 
