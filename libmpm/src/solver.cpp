@@ -402,6 +402,16 @@ template <class Shape>
 void Solver<D>::scatter(bool with_force) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
+  // f(mass, momentum, force) with the grid's layout fixed at compile time (Grid::access).
+  auto in_layout = [&](auto&& f) {
+    if (grid.sparse) {
+      f(grid.template access<true>(grid.mass), grid.template access<true>(grid.momentum),
+        grid.template access<true>(grid.force));
+    } else {
+      f(grid.template access<false>(grid.mass), grid.template access<false>(grid.momentum),
+        grid.template access<false>(grid.force));
+    }
+  };
   auto scatter_one = [&](std::size_t p) {
     if (owned_by_layer(p)) return;  // the boundary grid owns it (layer_scatter)
     const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
@@ -424,34 +434,39 @@ void Solver<D>::scatter(bool with_force) {
         scatter_factorised(st, m, v, C, &mb, &vs);
         return;
       }
-      st.for_each(grid, [&](int node, double N, const Vec<D>& dN, const Vec<D>& dx) {
-        const double Nm = N * m;
-        grid.mass[node] += Nm;
-        double* momentum = grid.momentum[node].data();
-        double* force = grid.force[node].data();
-        for (int a = 0; a < D; ++a) {
-          double va = v[a], fa = N * mb[a];
-          for (int b = 0; b < D; ++b) {
-            va += C[a][b] * dx[b];
-            fa += vs[a][b] * dN[b];
+      in_layout([&](const auto& mass, const auto& momenta, const auto& forces) {
+        st.for_each(grid, [&](int node, double N, const Vec<D>& dN, const Vec<D>& dx) {
+          const double Nm = N * m;
+          const auto n = static_cast<std::size_t>(node);
+          mass[n] += Nm;
+          double* momentum = momenta[n].data();
+          double* force = forces[n].data();
+          for (int a = 0; a < D; ++a) {
+            double va = v[a], fa = N * mb[a];
+            for (int b = 0; b < D; ++b) {
+              va += C[a][b] * dx[b];
+              fa += vs[a][b] * dN[b];
+            }
+            momentum[a] += Nm * va;
+            force[a] += fa;
           }
-          momentum[a] += Nm * va;
-          force[a] += fa;
-        }
+        });
       });
     } else {
       if constexpr (D == 3) {
         scatter_factorised(st, m, v, C, nullptr, nullptr);
         return;
       }
-      st.for_each(grid, [&](int node, double N, const Vec<D>& /*dN*/, const Vec<D>& dx) {
-        const double Nm = N * m;
-        double* momentum = grid.momentum[node].data();
-        for (int a = 0; a < D; ++a) {
-          double va = v[a];
-          for (int b = 0; b < D; ++b) va += C[a][b] * dx[b];
-          momentum[a] += Nm * va;
-        }
+      in_layout([&](const auto& /*mass*/, const auto& momenta, const auto& /*forces*/) {
+        st.for_each(grid, [&](int node, double N, const Vec<D>& /*dN*/, const Vec<D>& dx) {
+          const double Nm = N * m;
+          double* momentum = momenta[static_cast<std::size_t>(node)].data();
+          for (int a = 0; a < D; ++a) {
+            double va = v[a];
+            for (int b = 0; b < D; ++b) va += C[a][b] * dx[b];
+            momentum[a] += Nm * va;
+          }
+        });
       });
     }
   };
