@@ -14,4 +14,5 @@ cmake --build build --target mpm -j2
 build/bin/mpm run "$scene" -o "$out" --overwrite
 /usr/bin/python3 scripts/plot_run.py "$out"
 echo "Results in $out: particles.xmf and wall_*.xmf (open in ParaView), history.csv,"
-echo "summary.json (peak force per wall, run-out, retained volume), forces.png, render.png"
+echo "summary.json (peak force per wall, run-out: furthest particle and where the deposit is"
+echo "0.5 and 1 m deep, retained volume), forces.png, render.png"
