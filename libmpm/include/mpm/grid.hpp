@@ -164,36 +164,24 @@ struct Grid {
       storage_block[b] = linear((c * kBlock).eval()) / kBlockNodes;
     }
     const auto n = size();
-    if (sparse) {
-      storage.allocate(n / kBlockNodes * kBlockBytes);
-      char* block = static_cast<char*>(storage.data());
-      std::size_t at = 0;
-      auto place = [&](auto& array) {
-        using T = typename std::decay_t<decltype(array)>::value_type;
-        array.view(block + at, n, kBlockShift, kBlockBytes);
-        at += kBlockNodes * sizeof(T);
-      };
-      place(mass);
-      place(momentum);
-      place(force);
-      place(velocity);
-      place(velocity_new);
-    } else {
-      auto bytes = [&](std::size_t size) { return (n * size + 63) / 64 * 64; };
-      storage.allocate(bytes(sizeof(double)) + 4 * bytes(sizeof(Vec<D>)));
-      char* first = static_cast<char*>(storage.data());
-      std::size_t at = 0;
-      auto place = [&](auto& array) {
-        using T = typename std::decay_t<decltype(array)>::value_type;
-        array.view(first + at, n, kBlockShift, kBlockNodes * sizeof(T));  // a plain array
-        at += bytes(sizeof(T));
-      };
-      place(mass);
-      place(momentum);
-      place(force);
-      place(velocity);
-      place(velocity_new);
-    }
+    // Each array's part: sparse, of a block (the blocks follow each other, kBlockBytes apart);
+    // dense, the whole array (rounded to 64 bytes), the arrays one after the other.
+    auto part = [&](std::size_t size) {
+      return sparse ? kBlockNodes * size : (n * size + 63) / 64 * 64;
+    };
+    storage.allocate(sparse ? n / kBlockNodes * kBlockBytes
+                            : part(sizeof(double)) + 4 * part(sizeof(Vec<D>)));
+    char* at = static_cast<char*>(storage.data());
+    auto place = [&](auto& array) {
+      using T = typename std::decay_t<decltype(array)>::value_type;
+      array.view(at, n, kBlockShift, sparse ? kBlockBytes : kBlockNodes * sizeof(T));
+      at += part(sizeof(T));
+    };
+    place(mass);
+    place(momentum);
+    place(force);
+    place(velocity);
+    place(velocity_new);
     block_active.assign(block_count, 0);
     half_marked.assign(static_cast<std::size_t>(halves.prod()), 0);
     const std::size_t stored = sparse ? slot_count / kBlockNodes : 0;  // pages: sparse only
