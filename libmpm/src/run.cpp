@@ -280,8 +280,10 @@ nlohmann::json flow_summary(const Scene& scene, const ParticleFrame& first,
     c1 += last.mass[p] * frame_point(last, p);
     volume += last.volume[p];
   }
+  std::vector<double> travel(n);  // each particle's horizontal travel
   for (std::size_t p = 0; p < n; ++p) {
-    runout = std::max(runout, horizontal(frame_point(last, p) - frame_point(first, p)).norm());
+    travel[p] = horizontal(frame_point(last, p) - frame_point(first, p)).norm();
+    runout = std::max(runout, travel[p]);
   }
   if (m0 > 0.0) c0 /= m0;
   if (m1 > 0.0) c1 /= m1;
@@ -294,8 +296,7 @@ nlohmann::json flow_summary(const Scene& scene, const ParticleFrame& first,
     for (const double d : depths) {
       double reach = 0.0;
       for (std::size_t p = 0; p < n; ++p) {
-        if (depth[p] < d) continue;
-        reach = std::max(reach, horizontal(frame_point(last, p) - frame_point(first, p)).norm());
+        if (depth[p] >= d) reach = std::max(reach, travel[p]);
       }
       at_depth.push_back({{"depth", d}, {"distance", reach}, {"radius", radius}});
     }

@@ -782,7 +782,6 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
         output.fail_at(output.child("runout_depths"),
                        "expected a non-empty array of depths in metres, got " + describe(depths));
       }
-      scene.runout_depths.clear();
       for (std::size_t i = 0; i < depths.size(); ++i) {
         const json& d = depths[i];
         if (!d.is_number() || !(d.get<double>() > 0.0) || !std::isfinite(d.get<double>())) {
