@@ -659,16 +659,13 @@ void Solver<D>::layer_couple(bool remapped) {
       w.lambda.resize(k, D);
       w.residual.resize(k, D);
       w.update.resize(k, D);
-      w.solve_work.resize(k, D);
       for (Eigen::Index r = 0; r < ng; ++r) a.row(r) = va[w.grid_rows[r]].transpose();
       for (Eigen::Index r = 0; r < nl; ++r) b.row(r) = valpha[w.layer_rows[r]].transpose();
       w.gap.noalias() = w.grid_active.transpose() * a;
       w.gap.noalias() -= w.boundary_active.transpose() * b;
-      // The D columns are independent solves with one factorisation (whose solve only reads
-      // it): one per core.
+      // The D components side by side: each entry of the factor is read once for all of them.
       auto factor_solve = [&](const Block& rhs, Block& x) {
-        tbb::parallel_for(
-            0, D, [&](int d) { ldlt_solve(*w.schur, rhs.col(d), x.col(d), w.solve_work.col(d)); });
+        ldlt_solve(*w.schur, rhs, x, w.solve_work);
       };
       factor_solve(w.gap, w.lambda);
       if (w.schur_refine) {

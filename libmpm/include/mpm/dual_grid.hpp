@@ -45,7 +45,8 @@ struct ProductWork {
 /// Scratch of refined_solve() (sparse_pattern.hpp) for right-hand sides of type Rhs.
 template <class Rhs>
 struct SolveWork {
-  Rhs residual, update, work;
+  Rhs residual, update;
+  std::vector<double> work;  ///< ldlt_solve()'s
 };
 
 /// Contact state of one Gamma multiplier in Enhanced's active-set loop.
@@ -191,9 +192,9 @@ struct DualWall {
   std::vector<Eigen::Triplet<double>> grid_entries, layer_entries;
   std::vector<int> assembly_work;
   Eigen::VectorXd schur_diagonal;
-  Eigen::Matrix<double, Eigen::Dynamic, D> grid_block, layer_block, gap, lambda, residual, update,
-      solve_work;
-  double min_cell_size = 0.0;  ///< for the CFL limit
+  Eigen::Matrix<double, Eigen::Dynamic, D> grid_block, layer_block, gap, lambda, residual, update;
+  std::vector<double> solve_work;  ///< ldlt_solve()'s
+  double min_cell_size = 0.0;      ///< for the CFL limit
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
   EnhancedState<D> enh;

@@ -1,0 +1,115 @@
+// The dual-grid couplings' sparse kernels (libmpm/src/sparse_pattern.hpp): the LDL^T solve of
+// several right-hand sides side by side gives what Eigen's own solve gives column by column, and
+// the allocation-free assembly gives what setFromTriplets gives.
+
+#include <gtest/gtest.h>
+
+#include <random>
+#include <stdexcept>
+#include <vector>
+
+#include "sparse_pattern.hpp"
+
+namespace mpm {
+namespace {
+
+/// A symmetric, strictly diagonally dominant (so positive definite, condition number below
+/// (1 + r) / (1 - r) for a row sum r of the off-diagonal magnitudes relative to the diagonal:
+/// here r <= 0.5, cond <= 3) random sparse matrix of n rows, about `per_row` off-diagonal
+/// entries in each, scattered so that the fill-reducing ordering is not the identity.
+Eigen::SparseMatrix<double> random_spd(int n, int per_row, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_int_distribution<int> column(0, n - 1);
+  std::uniform_real_distribution<double> value(-1.0, 1.0);
+  std::vector<Eigen::Triplet<double>> entries;
+  std::vector<double> row_sum(static_cast<std::size_t>(n), 0.0);
+  for (int i = 0; i < n; ++i) {
+    for (int k = 0; k < per_row / 2; ++k) {
+      const int j = column(rng);
+      if (j == i) continue;
+      const double v = value(rng);
+      entries.emplace_back(i, j, v);
+      entries.emplace_back(j, i, v);
+      row_sum[static_cast<std::size_t>(i)] += std::abs(v);
+      row_sum[static_cast<std::size_t>(j)] += std::abs(v);
+    }
+  }
+  for (int i = 0; i < n; ++i) entries.emplace_back(i, i, 1.0 + 2.0 * row_sum[i]);
+  Eigen::SparseMatrix<double> a(n, n);
+  a.setFromTriplets(entries.begin(), entries.end());
+  return a;
+}
+
+template <class Rhs>
+void check_block_solve(const SparseLdlt& solver, const Eigen::SparseMatrix<double>& a, int cols,
+                       unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> value(-1.0, 1.0);
+  Rhs b(a.rows(), cols);
+  for (Eigen::Index i = 0; i < b.rows(); ++i) {
+    for (Eigen::Index c = 0; c < b.cols(); ++c) b(i, c) = value(rng);
+  }
+  Rhs x;
+  std::vector<double> work;
+  ldlt_solve(solver, b, x, work);
+  ldlt_solve(solver, b, x, work);  // the scratch reused
+  ASSERT_EQ(x.rows(), b.rows());
+  ASSERT_EQ(x.cols(), b.cols());
+  for (Eigen::Index c = 0; c < b.cols(); ++c) {
+    const Eigen::VectorXd reference = solver.solve(Eigen::VectorXd(b.col(c)));
+    // The same operations on each entry as Eigen's solve; only the compiler's contraction of
+    // a multiply and a subtraction into one rounding may differ: a few ulps through a solve of
+    // condition number <= 3.
+    EXPECT_LE((x.col(c) - reference).norm(), 1e-14 * reference.norm()) << "column " << c;
+    EXPECT_LE((a * x.col(c) - b.col(c)).norm(), 1e-13 * b.col(c).norm()) << "column " << c;
+  }
+}
+
+TEST(SparseSolve, BlockSolveGivesEigensSolveForEachColumn) {
+  const Eigen::SparseMatrix<double> a = random_spd(400, 10, 7);
+  SparseLdlt solver;
+  solver.compute(a);
+  ASSERT_EQ(solver.info(), Eigen::Success);
+  ASSERT_GT(solver.permutationP().size(), 0);  // a fill-reducing ordering is applied
+  check_block_solve<Eigen::VectorXd>(solver, a, 1, 1);
+  check_block_solve<Eigen::Matrix<double, Eigen::Dynamic, 2>>(solver, a, 2, 2);
+  check_block_solve<Eigen::Matrix<double, Eigen::Dynamic, 3>>(solver, a, 3, 3);
+  check_block_solve<Eigen::MatrixXd>(solver, a, 3, 4);
+  check_block_solve<Eigen::MatrixXd>(solver, a, 2, 5);
+}
+
+TEST(SparseSolve, BlockSolveRefusesMoreThanThreeColumns) {
+  const Eigen::SparseMatrix<double> a = random_spd(20, 4, 9);
+  SparseLdlt solver;
+  solver.compute(a);
+  const Eigen::MatrixXd b = Eigen::MatrixXd::Ones(20, 4);
+  Eigen::MatrixXd x;
+  std::vector<double> work;
+  EXPECT_THROW(ldlt_solve(solver, b, x, work), std::logic_error);
+}
+
+TEST(SparseSolve, AssemblyByColumnsEqualsSetFromTriplets) {
+  // Repeated (row, column) pairs are summed in their order, as setFromTriplets sums them: the
+  // two matrices are equal entry for entry, bit for bit.
+  std::mt19937 rng(11);
+  std::uniform_int_distribution<int> row(0, 59), column(0, 39);
+  std::uniform_real_distribution<double> value(-1.0, 1.0);
+  std::vector<Eigen::Triplet<double>> entries;
+  for (int e = 0; e < 900; ++e) entries.emplace_back(row(rng), column(rng), value(rng));
+  Eigen::SparseMatrix<double> reference(60, 40), m;
+  reference.setFromTriplets(entries.begin(), entries.end());
+  std::vector<int> work;
+  assign_by_columns(m, 60, 40, entries, work);
+  ASSERT_EQ(m.nonZeros(), reference.nonZeros());
+  for (Eigen::Index c = 0; c < 40; ++c) {
+    Eigen::SparseMatrix<double>::InnerIterator it(m, c), jt(reference, c);
+    for (; it && jt; ++it, ++jt) {
+      EXPECT_EQ(it.row(), jt.row());
+      EXPECT_EQ(it.value(), jt.value());
+    }
+    EXPECT_FALSE(it || jt) << "column " << c;
+  }
+}
+
+}  // namespace
+}  // namespace mpm
