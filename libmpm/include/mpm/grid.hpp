@@ -66,6 +66,28 @@ struct Grid {
   /// The five arrays' memory: dense, one array after the other; sparse, block by block (a
   /// block's masses, then its momenta, forces, velocities and new velocities: kBlockBytes).
   PageBuffer storage;
+  /// 3D: per node, whether the 3^3 nodes from it on (the stencil of a 3-node kernel whose
+  /// first node it is) all carry mass above the gather's threshold, as a gather pass found it:
+  /// +stencil_epoch, yes; -stencil_epoch, no; anything else, not known in this pass
+  /// (sample_grid(): the particles of a pass share each first node about 8 times, so 1 in 8
+  /// pays the 27 mass checks). Written by several threads at once, the same answer from each
+  /// (relaxed atomics). One byte per node slot, page-backed (sparse: a block's marks are 64
+  /// bytes in storage order, and a page of them is returned with the blocks it covers:
+  /// release_idle()); when the epoch wraps, the whole array is mapped afresh (zeros: not
+  /// known).
+  NodeArray<std::int8_t> stencil_mark;
+  int stencil_epoch = 0;
+  /// Bytes of stencil_mark per node (3D only).
+  static constexpr std::size_t kMarkBytes = D == 3 ? 1 : 0;
+  /// Starts a gather pass: earlier passes' marks no longer hold (the masses may have changed).
+  void begin_gather() {
+    if constexpr (D == 3) {
+      if (++stencil_epoch > 127) {
+        stencil_mark.assign_zero(stencil_mark.size());
+        stencil_epoch = 1;
+      }
+    }
+  }
 
   static constexpr int kBlock = 4;
   static constexpr int kBlockNodes = D == 1 ? 4 : D == 2 ? 16 : 64;  ///< kBlock^D
@@ -182,11 +204,19 @@ struct Grid {
     place(force);
     place(velocity);
     place(velocity_new);
+    if constexpr (D == 3) {  // whole pages, so that release_idle() can return the last one
+      const std::size_t page = PageBuffer::page_size();
+      stencil_mark.assign_zero((n + page - 1) / page * page);
+    }
+    stencil_epoch = 0;
     block_active.assign(block_count, 0);
     half_marked.assign(static_cast<std::size_t>(halves.prod()), 0);
     const std::size_t stored = sparse ? slot_count / kBlockNodes : 0;  // pages: sparse only
     last_active.assign(stored, -(1 << 30));
     resident.assign(stored, 0);
+    mark_resident.assign(
+        (stored * kBlockNodes * kMarkBytes + PageBuffer::page_size() - 1) / PageBuffer::page_size(),
+        0);
     epoch = 0;
     peak_committed = active_at_peak = peak_active = 0;
     active_blocks.clear();
@@ -198,8 +228,8 @@ struct Grid {
   [[nodiscard]] std::size_t size() const { return slot_count; }
   /// Nodes in the box.
   [[nodiscard]] std::size_t node_count() const { return static_cast<std::size_t>(nodes.prod()); }
-  /// Bytes the box would take stored densely.
-  [[nodiscard]] std::size_t box_bytes() const { return node_count() * kNodeBytes; }
+  /// Bytes the box would take stored densely (the node arrays and the stencil marks).
+  [[nodiscard]] std::size_t box_bytes() const { return node_count() * (kNodeBytes + kMarkBytes); }
   /// What node index i_d along axis d adds to a node's index (indices are separable: the index
   /// of node i is the sum over the axes).
   [[nodiscard]] int axis_offset(int d, int i) const {
@@ -265,9 +295,10 @@ struct Grid {
   std::vector<int> active_blocks;            ///< this step's blocks, in index order
   std::vector<int> previous_blocks;          ///< the step before's (clear_previous() zeroes them)
   // Sparse only, by place in storage (Morton order, holes included).
-  std::vector<int> last_active;        ///< the last step (epoch) each block was active
-  std::vector<std::uint8_t> resident;  ///< may the block's pages hold memory?
-  int epoch = 0;                       ///< steps marked so far
+  std::vector<int> last_active;             ///< the last step (epoch) each block was active
+  std::vector<std::uint8_t> resident;       ///< may the block's pages hold memory?
+  std::vector<std::uint8_t> mark_resident;  ///< may this page of stencil_mark hold memory?
+  int epoch = 0;                            ///< steps marked so far
   /// Sampled by release_idle(): the most memory the node arrays held, the active blocks' need
   /// then, and the most the active blocks needed at any sample.
   std::size_t peak_committed = 0, active_at_peak = 0, peak_active = 0;
@@ -331,6 +362,9 @@ struct Grid {
       const auto s = static_cast<std::size_t>(storage_block[b]);
       last_active[s] = epoch;
       resident[s] = 1;
+      if constexpr (kMarkBytes > 0) {
+        mark_resident[s * kBlockNodes * kMarkBytes / PageBuffer::page_size()] = 1;
+      }
     }
   }
   /// Calls f(first, count) for each run of nodes of `block` contiguous in memory: sparse, one,
@@ -425,12 +459,36 @@ struct Grid {
       }
       if (all) resident[b] = 0;
     }
+    // The stencil marks: a page holds the marks of page / (kBlockNodes kMarkBytes) blocks.
+    const std::size_t per_page = page / std::max<std::size_t>(1, kBlockNodes * kMarkBytes);
+    for (std::size_t q = 0; q < mark_resident.size(); ++q) {
+      if (mark_resident[q] == 0) continue;
+      bool free = true;
+      for (std::size_t c = q * per_page; c < std::min(count, (q + 1) * per_page) && free; ++c) {
+        free = idle(c);
+      }
+      if (!free) continue;
+      stencil_mark.release(q * page, page);
+      mark_resident[q] = 0;
+    }
   }
   /// Bytes of the node arrays backed by memory: the pages that overlap a block that may hold
-  /// memory (what release_idle() has not returned).
+  /// memory (what release_idle() has not returned), and of the stencil marks the pages that
+  /// overlap such a block's nodes (at most: marks are written only at particles' stencils,
+  /// which lie in active blocks, and the array is mapped afresh every 127 gather passes).
   /// Dense: the whole box (its pages are written as the material reaches them, and kept).
   [[nodiscard]] std::size_t committed_bytes() const {
     if (!sparse) return box_bytes();
+    const auto mark_pages = static_cast<std::size_t>(
+        std::count(mark_resident.begin(), mark_resident.end(), std::uint8_t{1}));
+    return resident_pages() + mark_pages * PageBuffer::page_size();
+  }
+  /// Bytes the active blocks' nodes need (what a block-sparse store could not do without).
+  [[nodiscard]] std::size_t active_bytes() const {
+    return active_blocks.size() * kBlockNodes * (kNodeBytes + kMarkBytes);
+  }
+  /// Bytes of the node arrays' pages that overlap a block that may hold memory (sparse).
+  [[nodiscard]] std::size_t resident_pages() const {
     const std::size_t page = PageBuffer::page_size();
     std::size_t pages = 0, next = 0;  // pages counted, and the first page not yet counted
     for (std::size_t b = 0; b < resident.size(); ++b) {
@@ -441,10 +499,6 @@ struct Grid {
       next = last + 1;
     }
     return pages * page;
-  }
-  /// Bytes the active blocks' nodes need (what a block-sparse store could not do without).
-  [[nodiscard]] std::size_t active_bytes() const {
-    return active_blocks.size() * kBlockNodes * kNodeBytes;
   }
 };
 

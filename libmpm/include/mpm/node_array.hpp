@@ -60,6 +60,9 @@ class NodeArray {
     size_ = n;
   }
   [[nodiscard]] std::size_t size() const { return size_; }
+  /// Returns the whole pages inside bytes [first, first + count) to the system: their values
+  /// read as zero again.
+  void release(std::size_t first, std::size_t count) { buffer_.release(first, count); }
   T& operator[](std::size_t i) { return data()[i]; }
   const T& operator[](std::size_t i) const { return data()[i]; }
   T* data() { return static_cast<T*>(buffer_.data()); }
