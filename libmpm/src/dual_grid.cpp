@@ -633,9 +633,15 @@ void Solver<D>::layer_couple(bool remapped) {
       // step's S) solves this step's by refinement, the residuals taken with the factors
       // R^A, M_A (S itself is not formed): layer particles move little per step, so S changes
       // little. A new pattern, or refinement that stalls, forms and factorises S.
+      // In a flow whose layer masses change fast (the debris scene: light nodes at the front
+      // weigh 1/m in S), refinement fails time after time, each failure costing passes before
+      // the factorisation it ends in: after a failure the next `refine_backoff` steps (1, 2, 4
+      // ... 64, reset by a success) factorise without trying.
       const std::size_t structure =
           pattern_hash(w.grid_active) * 1000003U + pattern_hash(w.boundary_active);
-      w.schur_refine = w.schur_factored && structure == w.factored_structure;
+      const bool waiting = w.refine_wait > 0;
+      if (waiting) --w.refine_wait;
+      w.schur_refine = w.schur_factored && structure == w.factored_structure && !waiting;
       if (!w.schur_refine) {
         w.factored_structure = structure;
         if (!factorise_schur(w, mortar)) continue;
@@ -683,8 +689,12 @@ void Solver<D>::layer_couple(bool remapped) {
           }
           y += w.schur_shift * x;
         };
-        if (!refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
-                    w.update)) {  // sparse_pattern.hpp
+        if (refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
+                   w.update)) {  // sparse_pattern.hpp
+          w.refine_backoff = 0;
+        } else {
+          w.refine_backoff = std::clamp(2 * w.refine_backoff, 1, 64);
+          w.refine_wait = w.refine_backoff;
           if (!factorise_schur(w, mortar)) return;
           w.schur_refine = false;
           factor_solve(w.gap, w.lambda);

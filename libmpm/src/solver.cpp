@@ -1204,7 +1204,8 @@ void Solver<D>::save_state(Checkpoint& c) const {
     // Mortar / one-way: the Schur complement the factorisation in hand is of.
     const std::string phi = "solver.coupling_" + std::to_string(i) + ".";
     c.integers[phi + "factored"] = {dual_[i].schur_factored ? 1 : 0,
-                                    static_cast<std::int64_t>(dual_[i].factored_structure)};
+                                    static_cast<std::int64_t>(dual_[i].factored_structure),
+                                    dual_[i].refine_wait, dual_[i].refine_backoff};
     if (dual_[i].schur_factored) save_sparse(c, phi + "schur", dual_[i].schur_base);
   }
 }
@@ -1258,9 +1259,11 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     }
     DualWall<D>& w = dual_[i];
     const std::string phi = "solver.coupling_" + std::to_string(i) + ".";
-    const auto& coupling = c.integer(phi + "factored", 2);
+    const auto& coupling = c.integer(phi + "factored", 4);
     w.schur_factored = false;
     w.factored_structure = static_cast<std::size_t>(coupling[1]);
+    w.refine_wait = static_cast<int>(coupling[2]);
+    w.refine_backoff = static_cast<int>(coupling[3]);
     if (coupling[0] != 0) {
       refactorise(phi + "schur", w.schur_base, *w.schur, w.pattern_hash, w.schur_factored);
     }

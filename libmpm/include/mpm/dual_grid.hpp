@@ -184,8 +184,11 @@ struct DualWall {
   std::size_t factored_structure = 0;  ///< patterns of R^A, R^alpha when `schur_base` was formed
   bool schur_factored = false;         ///< `schur` holds a valid factorisation (maybe older)
   bool schur_refine = false;           ///< this step's S is solved by refinement
-  std::size_t factorizations = 0;      ///< Schur factorisations so far (for benchmarks)
-  std::size_t refinements = 0;         ///< refinement passes against an earlier factorisation
+  /// After a refinement that failed, steps to factorise without trying (refine_wait), and how
+  /// many the next failure waits (doubled per failure up to 64, 0 after a success).
+  int refine_wait = 0, refine_backoff = 0;
+  std::size_t factorizations = 0;  ///< Schur factorisations so far (for benchmarks)
+  std::size_t refinements = 0;     ///< refinement passes against an earlier factorisation
   /// The coupling's scratch, kept from step to step so that a step that does not factorise
   /// allocates nothing (issue 9): the active coupling's entries, S's diagonal, and the solve's
   /// blocks (one row per kept row or active multiplier, one column per component).
