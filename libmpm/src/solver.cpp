@@ -496,6 +496,7 @@ void Solver<D>::particles_to_grid() {
                     [&](std::size_t k) { grid.clear_previous(k); });
   grid.release_idle();
   dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true); });
+  grid.masses_changed();
   layer_scatter(true);
   lap(&PhaseTimes::particles_to_grid);
 }
@@ -648,10 +649,10 @@ bool sample_grid_factorised(const Grid<3>& grid, std::int8_t* marks, const Stenc
   const char* mass = grid.mass.base();
   const char* vnew = v.base();
   const char* vold = v_old.base();
-  // Does every node carry mass? As this pass found it for the stencil's first node
+  // Does every node carry mass? As found for the stencil's first node since the masses changed
   // (Grid::stencil_mark, whose 3^3 nodes are the stencil of a 3-node kernel: quadratic
   // B-spline, GIMP), or checked here: 1 load in place of 27 for 7 particles in 8.
-  const bool marked = S == 3 && grid.stencil_epoch > 0;  // in a pass (begin_gather())
+  const bool marked = S == 3 && grid.stencil_epoch > 0;  // Grid::masses_changed() has run
   const auto epoch = static_cast<std::int8_t>(grid.stencil_epoch);
   const std::int8_t known =
       marked ? std::atomic_ref<std::int8_t>(marks[first]).load(std::memory_order_relaxed) : 0;
@@ -801,7 +802,7 @@ GridSample<D> sample_grid_nodes(const Grid<D>& grid, const Stencil<D, Shape>& st
 }
 
 // `grid` is the solver's, whose stencil marks the factorised path reads and writes (in 3D):
-// between Grid::begin_gather() and the end of the pass its masses must not change.
+// valid while its masses are those of the last Grid::masses_changed().
 template <unsigned Parts, int D, class Shape>
 GridSample<D> sample_grid(Grid<D>& grid, const Stencil<D, Shape>& st, const NodeField<Vec<D>>& v,
                           const NodeField<Vec<D>>& v_old, double threshold) {
@@ -833,7 +834,6 @@ void Solver<D>::gather(double dt) {
   constexpr bool bspline = std::is_same_v<Shape, BSpline2Shape>;
   const double alpha = scene_.flip_blend;
   const double inv_d = 4.0 * grid.inv_h * grid.inv_h;
-  grid.begin_gather();
   auto pass = [&](auto parts) {
     constexpr unsigned Parts = decltype(parts)::value;
     // Gathers particle p; with the gradient (USL), true if its stress is to be updated now.
@@ -889,7 +889,6 @@ template <int D>
 template <class Shape>
 void Solver<D>::gather_velocity_gradient(double dt) {
   auto& P = particles;
-  grid.begin_gather();
   sample_and_update_stress(dt, [&](std::size_t p, Mat<D>& L) {
     if (owned_by_layer(p)) return false;  // layer_gather_gradient
     const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);

@@ -67,20 +67,21 @@ struct Grid {
   /// block's masses, then its momenta, forces, velocities and new velocities: kBlockBytes).
   PageBuffer storage;
   /// 3D: per node, whether the 3^3 nodes from it on (the stencil of a 3-node kernel whose
-  /// first node it is) all carry mass above the gather's threshold, as a gather pass found it:
-  /// +stencil_epoch, yes; -stencil_epoch, no; anything else, not known in this pass
-  /// (sample_grid(): the particles of a pass share each first node about 8 times, so 1 in 8
-  /// pays the 27 mass checks). Written by several threads at once, the same answer from each
-  /// (relaxed atomics). One byte per node slot, page-backed (sparse: a block's marks are 64
-  /// bytes in storage order, and a page of them is returned with the blocks it covers:
-  /// release_idle()); when the epoch wraps, the whole array is mapped afresh (zeros: not
-  /// known).
+  /// first node it is) all carry mass above the gather's threshold, as a gather found it since
+  /// the masses last changed: +stencil_epoch, yes; -stencil_epoch, no; anything else, not known
+  /// (sample_grid(): the particles of a step share each first node about 8 times, so 1 in 8
+  /// pays the 27 mass checks, and MUSL's second gather none). Written by several threads at
+  /// once, the same answer from each (relaxed atomics). One byte per node slot, page-backed
+  /// (sparse: a block's marks are 64 bytes in storage order, and a page of them is returned
+  /// with the blocks it covers: release_idle()); when the epoch wraps, the whole array is
+  /// mapped afresh (zeros: not known).
   NodeArray<std::int8_t> stencil_mark;
-  int stencil_epoch = 0;
+  int stencil_epoch = 0;  ///< 0: no marks may be used (no masses_changed() yet)
   /// Bytes of stencil_mark per node (3D only).
   static constexpr std::size_t kMarkBytes = D == 3 ? 1 : 0;
-  /// Starts a gather pass: earlier passes' marks no longer hold (the masses may have changed).
-  void begin_gather() {
+  /// Every write of the node masses must be followed by this (the particles-to-grid scatter
+  /// is the only one): the marks found before no longer hold.
+  void masses_changed() {
     if constexpr (D == 3) {
       if (++stencil_epoch > 127) {
         stencil_mark.assign_zero(stencil_mark.size());
