@@ -108,6 +108,10 @@ struct EnhancedState {
   std::vector<double> candidate_diagonal, integral_list;
   std::vector<char> covered;
   std::vector<Eigen::Triplet<double>> cross_entries, grid_entries, alpha_entries, kkt_entries;
+  /// The layer's particles (their place in the layer list) with their standard stencil's first
+  /// node, sorted so that those with the same stencils on both grids are adjacent: their cross
+  /// mass entries are summed before they become triplets (enhanced_assemble()).
+  std::vector<std::pair<int, int>> cross_order;
   std::vector<int> assembly_work;
   Eigen::SparseMatrix<double> cross_candidates, minv_cross;
   ProductWork product_work;
