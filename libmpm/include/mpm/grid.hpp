@@ -475,8 +475,9 @@ struct Grid {
   }
   /// Bytes of the node arrays backed by memory: the pages that overlap a block that may hold
   /// memory (what release_idle() has not returned), and of the stencil marks the pages that
-  /// overlap such a block's nodes (at most: marks are written only at particles' stencils,
-  /// which lie in active blocks, and the array is mapped afresh every 127 gather passes).
+  /// may hold memory (mark_resident: set for the pages of active blocks' marks, the only marks
+  /// written, cleared when release_idle() returns a page; an upper bound, since a remap at the
+  /// epoch's wrap returns them all without clearing it).
   /// Dense: the whole box (its pages are written as the material reaches them, and kept).
   [[nodiscard]] std::size_t committed_bytes() const {
     if (!sparse) return box_bytes();
