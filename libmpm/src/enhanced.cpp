@@ -27,6 +27,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <type_traits>
 
 #include "alpha_stencil.hpp"
 #include "mpm/solver.hpp"
@@ -85,27 +86,27 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
       for (int d = 0; d < D; ++d) first += st.offset[d][0];
       order.emplace_back(first, static_cast<int>(i));
     }
-    auto same_cell = [&](int a, int b) {
+    // The boundary cells of two layer particles compared by their nodes: < 0, 0, > 0.
+    auto cell_order = [&](int a, int b) {
       const AlphaStencil<D>& x = layer_stencil_[static_cast<std::size_t>(a)];
       const AlphaStencil<D>& y = layer_stencil_[static_cast<std::size_t>(b)];
-      return std::equal(x.node, x.node + x.count, y.node, y.node + y.count);
+      if (std::equal(x.node, x.node + x.count, y.node, y.node + y.count)) return 0;
+      return std::lexicographical_compare(x.node, x.node + x.count, y.node, y.node + y.count) ? -1
+                                                                                              : 1;
     };
     std::sort(order.begin(), order.end(), [&](const auto& a, const auto& b) {
       if (a.first != b.first) return a.first < b.first;
-      const AlphaStencil<D>& x = layer_stencil_[static_cast<std::size_t>(a.second)];
-      const AlphaStencil<D>& y = layer_stencil_[static_cast<std::size_t>(b.second)];
-      if (!std::equal(x.node, x.node + x.count, y.node, y.node + y.count)) {
-        return std::lexicographical_compare(x.node, x.node + x.count, y.node, y.node + y.count);
-      }
-      return a.second < b.second;
+      const int c = cell_order(a.second, b.second);
+      return c != 0 ? c < 0 : a.second < b.second;
     });
-    double sum[kStencil][6];
-    bool used[kStencil][6];
+    constexpr int kCell = std::extent_v<decltype(AlphaStencil<D>::node)>;  // nodes, at most
+    double sum[kStencil][kCell];
+    bool used[kStencil][kCell];
     int node_at[kStencil];
     for (std::size_t g = 0; g < order.size();) {
       std::size_t end = g + 1;
       while (end < order.size() && order[end].first == order[g].first &&
-             same_cell(order[end].second, order[g].second)) {
+             cell_order(order[end].second, order[g].second) == 0) {
         ++end;
       }
       const AlphaStencil<D>& cell = layer_stencil_[static_cast<std::size_t>(order[g].second)];

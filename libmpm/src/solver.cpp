@@ -616,9 +616,8 @@ enum SampleParts : unsigned { kIncrement = 1U, kGradient = 2U, kMoment = 4U };
 // i stride_0 + j stride_1 + k (constant offsets along a row); otherwise the stencil's per-axis
 // offsets locate each node (a row of the sparse layout may cross a block).
 template <unsigned Parts, bool Dense, class Shape>
-bool sample_grid_factorised(const Grid<3>& grid, std::int8_t* marks, const Stencil<3, Shape>& st,
-                            const NodeField<Vec<3>>& v, const NodeField<Vec<3>>& v_old,
-                            double threshold, GridSample<3>& s) {
+bool sample_grid_factorised(Grid<3>& grid, const Stencil<3, Shape>& st, const NodeField<Vec<3>>& v,
+                            const NodeField<Vec<3>>& v_old, double threshold, GridSample<3>& s) {
   constexpr int S = Shape::support;
   constexpr bool kG = (Parts & kGradient) != 0, kM = (Parts & kMoment) != 0;
   constexpr bool kI = (Parts & kIncrement) != 0;
@@ -653,6 +652,7 @@ bool sample_grid_factorised(const Grid<3>& grid, std::int8_t* marks, const Stenc
   // (Grid::stencil_mark, whose 3^3 nodes are the stencil of a 3-node kernel: quadratic
   // B-spline, GIMP), or checked here: 1 load in place of 27 for 7 particles in 8.
   const bool marked = S == 3 && grid.stencil_epoch > 0;  // Grid::masses_changed() has run
+  std::int8_t* marks = grid.stencil_mark.data();
   const auto epoch = static_cast<std::int8_t>(grid.stencil_epoch);
   const std::int8_t known =
       marked ? std::atomic_ref<std::int8_t>(marks[first]).load(std::memory_order_relaxed) : 0;
@@ -808,10 +808,8 @@ GridSample<D> sample_grid(Grid<D>& grid, const Stencil<D, Shape>& st, const Node
                           const NodeField<Vec<D>>& v_old, double threshold) {
   if constexpr (D == 3) {
     GridSample<3> s;
-    std::int8_t* marks = grid.stencil_mark.data();
-    if (grid.sparse
-            ? sample_grid_factorised<Parts, false>(grid, marks, st, v, v_old, threshold, s)
-            : sample_grid_factorised<Parts, true>(grid, marks, st, v, v_old, threshold, s)) {
+    if (grid.sparse ? sample_grid_factorised<Parts, false>(grid, st, v, v_old, threshold, s)
+                    : sample_grid_factorised<Parts, true>(grid, st, v, v_old, threshold, s)) {
       return s;
     }
   }

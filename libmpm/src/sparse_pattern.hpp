@@ -193,9 +193,8 @@ inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::Vect
 /// this size.
 template <class Rhs>
 void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<double>& work) {
-  constexpr int kFixed = Rhs::ColsAtCompileTime;
   const Eigen::Index n = b.rows();
-  const Eigen::Index cols = kFixed == Eigen::Dynamic ? b.cols() : kFixed;
+  const Eigen::Index cols = b.cols();
   const auto width = static_cast<std::size_t>(cols);
   work.resize(static_cast<std::size_t>(n) * width);
   x.resize(n, b.cols());
