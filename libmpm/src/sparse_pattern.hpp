@@ -8,10 +8,12 @@
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <limits>
 #include <stdexcept>
 #include <type_traits>
 #include <vector>
 
+#include <tbb/parallel_invoke.h>
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 
@@ -189,14 +191,19 @@ inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::Vect
 /// order), but the columns side by side in `work` (scratch, row-major), so that each entry of
 /// L is read once for all of them rather than once per column (the floor scene's Phi coupling
 /// 9.5 -> 9.0 ms against a column per core, Enhanced's 19.5 -> 16.6 ms against a column at a
-/// time; docs/performance.md). At most 3 columns. No allocation once `work` and x have held
-/// this size.
+/// time; docs/performance.md). A factor whose elimination tree splits (SubtreeSplit) has its
+/// two sides solved on two threads; the sums are then grouped differently from Eigen's (round-off
+/// apart), the same for any thread count. At most 3 columns. No allocation once `work` and x
+/// have held this size.
 template <class Rhs>
 void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<double>& work) {
   const Eigen::Index n = b.rows();
   const Eigen::Index cols = b.cols();
   const auto width = static_cast<std::size_t>(cols);
-  work.resize(static_cast<std::size_t>(n) * width);
+  const SubtreeSplit& split = solver.split();
+  // The rows, then (split solves) the second side's updates of the top rows.
+  const std::size_t rows_size = static_cast<std::size_t>(n) * width;
+  work.resize(rows_size + (split.parallel ? split.top.size() * width : 0));
   x.resize(n, b.cols());
   const int* perm =
       solver.permutationP().size() > 0 ? solver.permutationP().indices().data() : nullptr;
@@ -211,39 +218,75 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
   const int* outer = l.outerIndexPtr();
   const int* inner = l.innerIndexPtr();
   const double* value = l.valuePtr();
+  const Eigen::VectorXd& d = solver.diagonal();
   // Each row's values are held in locals while its column is applied, so that the compiler
   // need not reload them after every store through the aliasing row pointers.
   auto apply_rows = [&](auto fixed) {
     constexpr int C = decltype(fixed)::value;
-    if (l.nonZeros() > 0) {
-      for (Eigen::Index j = 0; j < n; ++j) {
-        double xj[C];
-        for (int c = 0; c < C; ++c) xj[c] = work[static_cast<std::size_t>(j) * C + c];
-        for (int p = outer[j]; p < outer[j + 1]; ++p) {
-          if (inner[p] <= j) continue;
-          double* xi = &work[static_cast<std::size_t>(inner[p]) * C];
-          for (int c = 0; c < C; ++c) xi[c] -= xj[c] * value[p];
-        }
+    double* const rows = work.data();
+    // Forward: column j's update of the rows below it; rows beyond `limit` go to `spill`
+    // (their place among the top rows) instead.
+    auto forward = [&](int j, int limit, double* spill) {
+      double xj[C];
+      for (int c = 0; c < C; ++c) xj[c] = rows[static_cast<std::size_t>(j) * C + c];
+      for (int p = outer[j]; p < outer[j + 1]; ++p) {
+        const int i = inner[p];
+        if (i <= j) continue;
+        double* xi = i <= limit ? &rows[static_cast<std::size_t>(i) * C]
+                                : &spill[static_cast<std::size_t>(split.top_slot[i]) * C];
+        for (int c = 0; c < C; ++c) xi[c] -= xj[c] * value[p];
       }
+    };
+    // Backward: row i of L^T against the rows below it (final by then).
+    auto backward = [&](int i) {
+      double xi[C];
+      for (int c = 0; c < C; ++c) xi[c] = rows[static_cast<std::size_t>(i) * C + c];
+      for (int p = outer[i]; p < outer[i + 1]; ++p) {
+        if (inner[p] <= i) continue;
+        const double* xk = &rows[static_cast<std::size_t>(inner[p]) * C];
+        for (int c = 0; c < C; ++c) xi[c] -= value[p] * xk[c];
+      }
+      for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(i) * C + c] = xi[c];
+    };
+    constexpr int kAll = std::numeric_limits<int>::max();
+    const int count = static_cast<int>(n);
+    if (split.parallel) {
+      // The two sides at once, then the top; the second side's updates of top rows added
+      // between (SubtreeSplit).
+      double* spill = rows + rows_size;
+      std::fill(spill, spill + split.top.size() * C, 0.0);
+      tbb::parallel_invoke(
+          [&] {
+            for (const int j : split.side[0]) forward(j, kAll, nullptr);
+          },
+          [&] {
+            for (const int j : split.side[1]) forward(j, split.root[j], spill);
+          });
+      for (std::size_t t = 0; t < split.top.size(); ++t) {
+        for (int c = 0; c < C; ++c)
+          rows[static_cast<std::size_t>(split.top[t]) * C + c] += spill[t * C + c];
+      }
+      for (const int j : split.top) forward(j, kAll, nullptr);
+    } else if (l.nonZeros() > 0) {
+      for (int j = 0; j < count; ++j) forward(j, kAll, nullptr);
     }
-    const Eigen::VectorXd& d = solver.diagonal();
     if (d.size() > 0) {
-      for (Eigen::Index j = 0; j < n; ++j) {
+      for (int j = 0; j < count; ++j) {
         const double inverse = 1.0 / d[j];
-        for (int c = 0; c < C; ++c) work[static_cast<std::size_t>(j) * C + c] *= inverse;
+        for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(j) * C + c] *= inverse;
       }
     }
-    if (l.nonZeros() > 0) {
-      for (Eigen::Index i = n - 1; i >= 0; --i) {
-        double xi[C];
-        for (int c = 0; c < C; ++c) xi[c] = work[static_cast<std::size_t>(i) * C + c];
-        for (int p = outer[i]; p < outer[i + 1]; ++p) {
-          if (inner[p] <= i) continue;
-          const double* xk = &work[static_cast<std::size_t>(inner[p]) * C];
-          for (int c = 0; c < C; ++c) xi[c] -= value[p] * xk[c];
-        }
-        for (int c = 0; c < C; ++c) work[static_cast<std::size_t>(i) * C + c] = xi[c];
-      }
+    if (split.parallel) {
+      for (auto t = split.top.rbegin(); t != split.top.rend(); ++t) backward(*t);
+      tbb::parallel_invoke(
+          [&] {
+            for (auto j = split.side[0].rbegin(); j != split.side[0].rend(); ++j) backward(*j);
+          },
+          [&] {
+            for (auto j = split.side[1].rbegin(); j != split.side[1].rend(); ++j) backward(*j);
+          });
+    } else if (l.nonZeros() > 0) {
+      for (int i = count - 1; i >= 0; --i) backward(i);
     }
   };
   switch (cols) {

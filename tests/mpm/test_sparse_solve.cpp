@@ -8,6 +8,8 @@
 #include <stdexcept>
 #include <vector>
 
+#include <tbb/global_control.h>
+
 #include "sparse_pattern.hpp"
 
 namespace mpm {
@@ -76,6 +78,116 @@ TEST(SparseSolve, BlockSolveGivesEigensSolveForEachColumn) {
   check_block_solve<Eigen::Matrix<double, Eigen::Dynamic, 3>>(solver, a, 3, 3);
   check_block_solve<Eigen::MatrixXd>(solver, a, 3, 4);
   check_block_solve<Eigen::MatrixXd>(solver, a, 2, 5);
+}
+
+/// The matrix of a 9-point stencil on an m x m grid of unknowns (the pattern of a Phi coupling's
+/// Schur complement on a flat wall: each multiplier couples to its neighbours within a few
+/// spacings), made strictly diagonally dominant as random_spd() (cond <= 3).
+Eigen::SparseMatrix<double> grid_spd(int m) {
+  std::vector<Eigen::Triplet<double>> entries;
+  const int n = m * m;
+  std::vector<double> row_sum(static_cast<std::size_t>(n), 0.0);
+  for (int i = 0; i < m; ++i) {
+    for (int j = 0; j < m; ++j) {
+      for (int di = -2; di <= 2; ++di) {
+        for (int dj = -2; dj <= 2; ++dj) {
+          const int k = i + di, l = j + dj;
+          if ((di == 0 && dj == 0) || k < 0 || l < 0 || k >= m || l >= m) continue;
+          const double v = -1.0 / (1.0 + di * di + dj * dj);
+          entries.emplace_back(i * m + j, k * m + l, v);
+          row_sum[static_cast<std::size_t>(i * m + j)] += std::abs(v);
+        }
+      }
+    }
+  }
+  for (int r = 0; r < n; ++r) entries.emplace_back(r, r, 1.0 + 2.0 * row_sum[r]);
+  Eigen::SparseMatrix<double> a(n, n);
+  a.setFromTriplets(entries.begin(), entries.end());
+  return a;
+}
+
+TEST(SparseSolve, SubtreeSplitCoversTheTreeAndKeepsItsOrder) {
+  SparseLdlt solver;
+  solver.compute(grid_spd(40));
+  ASSERT_EQ(solver.info(), Eigen::Success);
+  const SubtreeSplit& split = solver.split();
+  ASSERT_TRUE(split.parallel);
+  const auto& l = solver.matrixL().nestedExpression();
+  const auto n = static_cast<int>(l.cols());
+  // The elimination tree, from L's structure.
+  std::vector<int> parent(static_cast<std::size_t>(n), -1);
+  for (int j = 0; j < n; ++j) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(l, j); it; ++it) {
+      if (it.row() > j) {
+        parent[j] = static_cast<int>(it.row());
+        break;
+      }
+    }
+  }
+  std::vector<int> part(static_cast<std::size_t>(n), -1);  // 0, 1: sides; 2: top
+  auto claim = [&](const std::vector<int>& columns, int which) {
+    for (std::size_t k = 0; k < columns.size(); ++k) {
+      if (k > 0) {
+        EXPECT_LT(columns[k - 1], columns[k]) << "part " << which << " not increasing";
+      }
+      EXPECT_EQ(part[columns[k]], -1) << "column " << columns[k] << " in two parts";
+      part[columns[k]] = which;
+    }
+  };
+  claim(split.side[0], 0);
+  claim(split.side[1], 1);
+  claim(split.top, 2);
+  for (int j = 0; j < n; ++j) {
+    ASSERT_NE(part[j], -1) << "column " << j << " in no part";
+    if (part[j] == 2) {
+      // The top is closed towards the root.
+      if (parent[j] >= 0) {
+        EXPECT_EQ(part[parent[j]], 2) << "column " << j;
+      }
+      EXPECT_EQ(split.top[split.top_slot[j]], j);
+      continue;
+    }
+    // A side holds whole subtrees: a column's parent is on its side or in the top, and every
+    // row of its column up to its subtree's root is on its side, every row beyond in the top.
+    const int r = split.root[j];
+    ASSERT_GE(r, j);
+    EXPECT_EQ(part[r], part[j]) << "column " << j;
+    EXPECT_TRUE(parent[r] < 0 || part[parent[r]] == 2) << "column " << j;
+    for (Eigen::SparseMatrix<double>::InnerIterator it(l, j); it; ++it) {
+      if (it.row() <= j) continue;
+      EXPECT_EQ(part[it.row()], it.row() <= r ? part[j] : 2) << "column " << j;
+    }
+  }
+  // Both sides carry work: the split halves the part of the solve below the top.
+  EXPECT_GT(split.side[0].size(), static_cast<std::size_t>(n) / 8);
+  EXPECT_GT(split.side[1].size(), static_cast<std::size_t>(n) / 8);
+}
+
+TEST(SparseSolve, SplitSolveMatchesEigenAndIsTheSameOnOneThread) {
+  const Eigen::SparseMatrix<double> a = grid_spd(40);
+  SparseLdlt solver;
+  solver.compute(a);
+  ASSERT_TRUE(solver.split().parallel);
+  Eigen::Matrix<double, Eigen::Dynamic, 3> b(a.rows(), 3), x, x_one;
+  std::mt19937 rng(13);
+  std::uniform_real_distribution<double> value(-1.0, 1.0);
+  for (Eigen::Index i = 0; i < b.rows(); ++i) {
+    for (int c = 0; c < 3; ++c) b(i, c) = value(rng);
+  }
+  std::vector<double> work;
+  ldlt_solve(solver, b, x, work);
+  for (int c = 0; c < 3; ++c) {
+    const Eigen::VectorXd reference = solver.solve(Eigen::VectorXd(b.col(c)));
+    // Only the order in which a top row's updates are summed differs from Eigen's solve (the
+    // second side's as one partial sum): a few ulps of each entry, through a solve of
+    // condition number <= 3.
+    EXPECT_LE((x.col(c) - reference).norm(), 1e-13 * reference.norm()) << "column " << c;
+  }
+  {
+    tbb::global_control one(tbb::global_control::max_allowed_parallelism, 1);
+    ldlt_solve(solver, b, x_one, work);
+  }
+  EXPECT_TRUE(x == x_one) << "the split solve depends on the thread count";
 }
 
 TEST(SparseSolve, BlockSolveRefusesMoreThanThreeColumns) {

@@ -27,11 +27,54 @@ struct AlphaStencil {
   Vec<D> dN[6];
 };
 
+/// How ldlt_solve() (sparse_pattern.hpp) shares the triangular solves of a factor between two
+/// threads. Column j of L holds rows only among j's ancestors in the elimination tree, so two
+/// disjoint subtrees can be solved at once: `side[0]`, `side[1]` are two sets of whole subtrees
+/// (each side's columns in increasing order), `top` the columns above them (increasing), which
+/// the forward solve takes after both sides and the backward solve before them. A column of a
+/// side reaches the top only through rows beyond its subtree's root, `root[j]`; the second
+/// side's updates of top rows go to a buffer (`top_slot[i]`: the row's place in it) that is
+/// added after both sides: the same sums for any thread count. `parallel` is false where the
+/// split would not pay (a small factor, or a tree that does not branch near its root).
+struct SubtreeSplit {
+  bool parallel = false;
+  std::vector<int> side[2], top;
+  std::vector<int> root, top_slot;
+};
+
+/// Splits the elimination tree of the unit lower factor `l` (Eigen's column storage, row indices
+/// increasing in each column) for ldlt_solve() (SubtreeSplit).
+SubtreeSplit split_subtrees(const Eigen::SparseMatrix<double>& l);
+
 /// Eigen's sparse LDL^T, with read access to D (its vectorD() returns a copy: an allocation
-/// per solve in ldlt_solve(), sparse_pattern.hpp).
+/// per solve in ldlt_solve(), sparse_pattern.hpp), and the split of its elimination tree for
+/// solves on two threads, made again after the first factorisation of each new pattern (the
+/// tree and L's structure depend on the pattern only).
 class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
+  using Base = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
+
  public:
   [[nodiscard]] const Eigen::VectorXd& diagonal() const { return m_diag; }
+  [[nodiscard]] const SubtreeSplit& split() const { return split_; }
+  void compute(const Eigen::SparseMatrix<double>& a) {
+    analyzePattern(a);
+    factorize(a);
+  }
+  void analyzePattern(const Eigen::SparseMatrix<double>& a) {
+    Base::analyzePattern(a);
+    split_stale_ = true;
+  }
+  void factorize(const Eigen::SparseMatrix<double>& a) {
+    Base::factorize(a);
+    if (split_stale_ && info() == Eigen::Success) {
+      split_ = split_subtrees(matrixL().nestedExpression());
+      split_stale_ = false;
+    }
+  }
+
+ private:
+  SubtreeSplit split_;
+  bool split_stale_ = true;
 };
 
 /// Scratch of product_into() (sparse_pattern.hpp), kept between calls.

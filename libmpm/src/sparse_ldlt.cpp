@@ -1,0 +1,147 @@
+// The split of an LDL^T factor's elimination tree that lets ldlt_solve() (sparse_pattern.hpp)
+// run its triangular solves on two threads (SubtreeSplit, mpm/dual_grid.hpp).
+
+#include <algorithm>
+#include <cstdint>
+#include <queue>
+#include <utility>
+#include <vector>
+
+#include "mpm/dual_grid.hpp"
+
+namespace mpm {
+
+namespace {
+
+// Below this many entries in L a solve takes a few tens of microseconds, about what handing
+// half of it to the other thread costs.
+constexpr Eigen::Index kMinEntries = 20000;
+// The split is kept only if the solve's predicted time (the top's work plus the larger side's)
+// is at most this fraction of the serial solve's.
+constexpr double kWorthwhile = 0.75;
+// Sides within 2% of the ideal halves end the search.
+constexpr double kBalanced = 1.02;
+
+}  // namespace
+
+SubtreeSplit split_subtrees(const Eigen::SparseMatrix<double>& l) {
+  SubtreeSplit split;
+  const auto n = static_cast<int>(l.cols());
+  if (l.nonZeros() < kMinEntries) return split;
+  const int* outer = l.outerIndexPtr();
+  const int* inner = l.innerIndexPtr();
+  // The elimination tree: column j's parent is the first row below the diagonal in column j
+  // of L. Parents follow their children, so one pass in increasing order sums each subtree's
+  // work (the entries a solve reads, and one for the column itself).
+  std::vector<int> parent(static_cast<std::size_t>(n), -1);
+  std::vector<double> own(static_cast<std::size_t>(n)), work(static_cast<std::size_t>(n));
+  for (int j = 0; j < n; ++j) {
+    int below = 0;
+    for (int p = outer[j]; p < outer[j + 1]; ++p) {
+      if (inner[p] <= j) continue;
+      if (below++ == 0) parent[j] = inner[p];
+    }
+    own[j] = 1.0 + below;
+  }
+  std::vector<int> child_first(static_cast<std::size_t>(n) + 1, 0), children;
+  double total = 0.0;
+  for (int j = 0; j < n; ++j) {
+    work[j] += own[j];
+    if (parent[j] >= 0) {
+      work[parent[j]] += work[j];
+      ++child_first[parent[j] + 1];
+    } else {
+      total += work[j];
+    }
+  }
+  for (int j = 0; j < n; ++j) child_first[j + 1] += child_first[j];
+  children.resize(static_cast<std::size_t>(child_first[n]));
+  {
+    std::vector<int> fill(child_first.begin(), child_first.end() - 1);
+    for (int j = 0; j < n; ++j) {
+      if (parent[j] >= 0) children[fill[parent[j]]++] = j;
+    }
+  }
+
+  // Move subtrees' roots into the top, heaviest first, starting from the tree's roots; after
+  // each move pack the remaining subtrees (the frontier) onto two sides, heaviest first onto
+  // the lighter side, and remember the number of moves with the least predicted time.
+  const auto heavier = [&](int a, int b) {
+    return work[a] < work[b] || (work[a] == work[b] && a > b);
+  };
+  auto expand = [&](int moves, std::vector<int>& top, auto&& visit) {
+    std::priority_queue<int, std::vector<int>, decltype(heavier)> frontier(heavier);
+    for (int j = 0; j < n; ++j) {
+      if (parent[j] < 0) frontier.push(j);
+    }
+    double top_work = 0.0;
+    for (int move = 0;; ++move) {
+      if (!visit(move, top_work, frontier)) return;
+      if (move == moves || frontier.empty()) return;
+      const int t = frontier.top();
+      frontier.pop();
+      top.push_back(t);
+      top_work += own[t];
+      for (int c = child_first[t]; c < child_first[t + 1]; ++c) frontier.push(children[c]);
+    }
+  };
+  // Packs a copy of the frontier (heaviest first); returns the larger side's work.
+  std::vector<std::uint8_t> side_of(static_cast<std::size_t>(n), 2);
+  auto pack = [&](auto frontier, bool assign) {
+    double sides[2] = {0.0, 0.0};
+    while (!frontier.empty()) {
+      const int t = frontier.top();
+      frontier.pop();
+      const int s = sides[1] < sides[0] ? 1 : 0;
+      sides[s] += work[t];
+      if (assign) side_of[t] = static_cast<std::uint8_t>(s);
+    }
+    return std::max(sides[0], sides[1]);
+  };
+  double best = total;
+  int best_moves = -1;
+  std::vector<int> top;
+  expand(n, top, [&](int move, double top_work, const auto& frontier) {
+    // No later move can beat the top's work plus half the rest.
+    const double bound = top_work + 0.5 * (total - top_work);
+    if (bound >= best) return false;
+    const double predicted = top_work + pack(frontier, false);
+    if (predicted < best) {
+      best = predicted;
+      best_moves = move;
+    }
+    return predicted > kBalanced * bound;  // balanced: more moves only add to the top
+  });
+  if (best_moves < 0 || best > kWorthwhile * total) return split;
+
+  top.clear();
+  expand(best_moves, top, [&](int move, double, const auto& frontier) {
+    if (move == best_moves) pack(frontier, true);
+    return true;
+  });
+  split.root.assign(static_cast<std::size_t>(n), -1);
+  split.top_slot.assign(static_cast<std::size_t>(n), -1);
+  for (const int t : top) side_of[t] = 3;
+  // Parents first (decreasing order): a column below a frontier root takes its root's side.
+  for (int j = n - 1; j >= 0; --j) {
+    if (side_of[j] == 3) continue;
+    if (side_of[j] < 2) {
+      split.root[j] = j;
+    } else {
+      side_of[j] = side_of[parent[j]];
+      split.root[j] = split.root[parent[j]];
+    }
+  }
+  for (int j = 0; j < n; ++j) {
+    if (side_of[j] == 3) {
+      split.top_slot[j] = static_cast<int>(split.top.size());
+      split.top.push_back(j);
+    } else {
+      split.side[side_of[j]].push_back(j);
+    }
+  }
+  split.parallel = true;
+  return split;
+}
+
+}  // namespace mpm
