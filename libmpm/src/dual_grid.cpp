@@ -675,7 +675,7 @@ void Solver<D>::layer_couple(bool remapped) {
       };
       factor_solve(w.gap, w.lambda);
       if (w.schur_refine) {
-        // x += F^-1 (gap - S x) while refine() allows (to an update below 1e-13 of x);
+        // x += F^-1 (gap - S x) while refine() allows (to an error below 1e-10 of x);
         // unconverged (the masses moved too far from the factorised step's), factorise this
         // step's S. The products run through a and b, free by now.
         auto apply = [&](const Block& x, Block& y) {

@@ -438,8 +438,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         assign_by_columns(e.kkt_matrix, nv + nc, nv + nc, t, e.assembly_work);
         // The same rows on the same pattern as the factorisation in hand (contact that has not
         // changed since an earlier step): the masses moved a little, so that factorisation is a
-        // close preconditioner and a few refinement passes solve the new matrix to round-off;
-        // only a pattern or row change, or a refinement that stalls, refactorises.
+        // close preconditioner and a few refinement passes solve the new matrix (to 1e-10:
+        // refine()); only a pattern or row change, or a refinement that stalls, refactorises.
         if (!factorise_or_reuse(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_pattern,
                                 e.kkt_factored, signature == e.kkt_signature, e.kkt_refine,
                                 e.factorizations)) {
