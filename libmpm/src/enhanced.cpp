@@ -29,6 +29,8 @@
 #include <cmath>
 #include <type_traits>
 
+#include <tbb/parallel_invoke.h>
+
 #include "alpha_stencil.hpp"
 #include "mpm/solver.hpp"
 #include "sparse_pattern.hpp"
@@ -158,7 +160,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   // the kept columns are taken.
   Sparse& cross_candidates = e.cross_candidates;
   assign_by_columns(cross_candidates, static_cast<Eigen::Index>(e.a_rows.size()),
-                    static_cast<Eigen::Index>(candidates.size()), cross, e.assembly_work);
+                    static_cast<Eigen::Index>(candidates.size()), cross, e.assembly_work[0]);
   for (Eigen::Index c = 0; c < cross_candidates.outerSize(); ++c) {
     for (Sparse::InnerIterator it(cross_candidates, c); it; ++it) {
       diag[static_cast<std::size_t>(c)] -=
@@ -283,19 +285,33 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     }
     outer[ns] = next;
   }
-  assign_by_columns(e.grid_r, na, k, ga, e.assembly_work);
-  assign_by_columns(e.alpha_r, ns, k, gb, e.assembly_work);
-
-  // M_A^-1 C (the cross mass's pattern, rows scaled), then K = M^alpha - C^T M_A^-1 C,
-  // W = R^alpha - (M_A^-1 C)^T R^A and R^A^T M_A^-1 R^A, in the state's own storage.
+  // R^A, R^alpha and M_A^-1 C (the cross mass's pattern, rows scaled), then K = M^alpha -
+  // C^T M_A^-1 C, W = R^alpha - (M_A^-1 C)^T R^A and R^A^T M_A^-1 R^A, in the state's own
+  // storage. Independent of each other, so they are formed side by side on the two cores (each
+  // with its own scratch; the same operations as one after another).
   Sparse& minv_c = e.minv_cross;
-  copy_into(e.cross, minv_c);
-  for (Eigen::Index c = 0; c < minv_c.outerSize(); ++c) {
-    for (Sparse::InnerIterator it(minv_c, c); it; ++it) it.valueRef() *= e.inv_mass[it.row()];
-  }
-  product_into(nullptr, &e.alpha_mass, e.cross, nullptr, minv_c, e.schur, e.product_work);
-  product_into(&e.alpha_r, nullptr, minv_c, nullptr, e.grid_r, e.coupled_r, e.product_work);
-  product_into(nullptr, nullptr, e.grid_r, &e.inv_mass, e.grid_r, e.grid_rr, e.product_work);
+  tbb::parallel_invoke([&] { assign_by_columns(e.grid_r, na, k, ga, e.assembly_work[0]); },
+                       [&] {
+                         assign_by_columns(e.alpha_r, ns, k, gb, e.assembly_work[1]);
+                         copy_into(e.cross, minv_c);
+                         for (Eigen::Index c = 0; c < minv_c.outerSize(); ++c) {
+                           for (Sparse::InnerIterator it(minv_c, c); it; ++it) {
+                             it.valueRef() *= e.inv_mass[it.row()];
+                           }
+                         }
+                       });
+  tbb::parallel_invoke(
+      [&] {
+        product_into(nullptr, &e.alpha_mass, e.cross, nullptr, minv_c, e.schur, e.product_work[0]);
+      },
+      [&] {
+        product_into(&e.alpha_r, nullptr, minv_c, nullptr, e.grid_r, e.coupled_r,
+                     e.product_work[1]);
+      },
+      [&] {
+        product_into(nullptr, nullptr, e.grid_r, &e.inv_mass, e.grid_r, e.grid_rr,
+                     e.product_work[2]);
+      });
   e.kkt_ready = false;  // new masses: the contact system is solved anew
   if (ns > 0 && !factorise_or_reuse(*e.schur_solver, e.schur, e.schur_base, e.schur_pattern,
                                     e.schur_factored, true, e.schur_refine, e.factorizations)) {
@@ -435,7 +451,7 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
           }
         }
         for (Eigen::Index c = 0; c < nc; ++c) t.emplace_back(nv + c, nv + c, -1e-10 * scale);
-        assign_by_columns(e.kkt_matrix, nv + nc, nv + nc, t, e.assembly_work);
+        assign_by_columns(e.kkt_matrix, nv + nc, nv + nc, t, e.assembly_work[0]);
         // The same rows on the same pattern as the factorisation in hand (contact that has not
         // changed since an earlier step): the masses moved a little, so that factorisation is a
         // close preconditioner and a few refinement passes solve the new matrix (to 1e-10:

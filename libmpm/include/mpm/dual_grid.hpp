@@ -155,9 +155,11 @@ struct EnhancedState {
   /// node, sorted so that those with the same stencils on both grids are adjacent: their cross
   /// mass entries are summed before they become triplets (enhanced_assemble()).
   std::vector<std::pair<int, int>> cross_order;
-  std::vector<int> assembly_work;
+  /// assign_by_columns()' and product_into()'s scratch: one per matrix enhanced_assemble()
+  /// forms at the same time as another (R^A and R^alpha; K, W and R^A^T M_A^-1 R^A).
+  std::vector<int> assembly_work[2];
   Eigen::SparseMatrix<double> cross_candidates, minv_cross;
-  ProductWork product_work;
+  ProductWork product_work[3];
   Block pa, ps, vs, vna, impulse, load, pa_load, ps_load, minv_pa, rhs_alpha, rt_minv_pa, gap;
   std::vector<Contact> contact, on_contact;
   std::vector<double> friction;
