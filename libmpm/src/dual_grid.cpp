@@ -667,15 +667,23 @@ void Solver<D>::layer_couple(bool remapped) {
       w.update.resize(k, D);
       for (Eigen::Index r = 0; r < ng; ++r) a.row(r) = va[w.grid_rows[r]].transpose();
       for (Eigen::Index r = 0; r < nl; ++r) b.row(r) = valpha[w.layer_rows[r]].transpose();
+      // gap = R^A^T v^A - R^alpha^T v^alpha; the larger term's size is the scale refine()
+      // measures the constraint's residual against.
       w.gap.noalias() = w.grid_active.transpose() * a;
-      w.gap.noalias() -= w.boundary_active.transpose() * b;
+      w.residual.noalias() = w.boundary_active.transpose() * b;
+      const double scale = std::max(w.gap.norm(), w.residual.norm());
+      w.gap -= w.residual;
+      // The grids agree at Phi already, to refine()'s 1e-10 of the interface terms (material
+      // moving as a whole, or in a linear field both grids carry exactly): no impulse, no solve.
+      if (w.gap.norm() <= kRefineTolerance * scale) return;
       // The D components side by side: each entry of the factor is read once for all of them.
       auto factor_solve = [&](const Block& rhs, Block& x) {
         ldlt_solve(*w.schur, rhs, x, w.solve_work);
       };
       factor_solve(w.gap, w.lambda);
       if (w.schur_refine) {
-        // x += F^-1 (gap - S x) while refine() allows (to an error below 1e-10 of x);
+        // x += F^-1 (gap - S x) while refine() allows (to an error below 1e-10 of x, or a
+        // residual below 1e-10 of the interface terms);
         // unconverged (the masses moved too far from the factorised step's), factorise this
         // step's S. The products run through a and b, free by now.
         auto apply = [&](const Block& x, Block& y) {
@@ -689,8 +697,8 @@ void Solver<D>::layer_couple(bool remapped) {
           }
           y += w.schur_shift * x;
         };
-        if (refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
-                   w.update)) {  // sparse_pattern.hpp
+        if (refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual, w.update,
+                   scale)) {  // sparse_pattern.hpp
           w.refine_backoff = 0;
         } else {
           w.refine_backoff = std::clamp(2 * w.refine_backoff, 1, 64);
