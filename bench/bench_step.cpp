@@ -7,16 +7,8 @@
 //                          step (MUSL, the default, maps the momenta back to the grid and
 //                          gathers again: two transfers each way)
 //   BM_StandardStepSparse3D/N : BM_StandardStep3D on the sparse grid layout (grid "storage")
-//   BM_FloorStep3D/N/m   : an N x N x 10-cell block resting on a floor under gravity, so 10% of
-//                          the particles are within h of it; m = 0: standard wall on the box face
-//                          (grid line), 1: Blending mortar dual-grid floor, 2: one-way,
-//                          3: Enhanced velocity field, 4: mortar with Phi's multipliers merged
-//                          within h ("multiplier_radius": 1). The floor of the dual-grid runs is
-//                          a plane 0.3 h off the grid lines. The block's particles lie on its
-//                          own lattice, so that the lowest touch the floor from the first step
-//                          (on the grid's lattice the block began 0.2 h above that floor and fell
-//                          freely through the whole benchmark: until 2026-12-03 the dual-grid
-//                          ratios were those of a block in free fall, docs/performance.md).
+//   BM_FloorStep3D/N/m   : floor_scene(N, m) (bench/perf_scenes.hpp): a block resting on a floor,
+//                          10% of its particles within h of it; m the wall method
 //
 // BM_StandardStep3D also reports bytes_per_particle: the heap the solver holds after its first
 // step (particles and step scratch; glibc's count of bytes in use, from before the solver is
@@ -24,91 +16,14 @@
 
 #include <benchmark/benchmark.h>
 
-#include <malloc.h>
-
-#include <nlohmann/json.hpp>
-
 #include "mpm/solver.hpp"
-#include "support/shapes.hpp"
+#include "perf_scenes.hpp"
 
 namespace {
 
-nlohmann::json material() {
-  return {{"name", "m"},
-          {"model", "neo_hookean"},
-          {"density", 1000.0},
-          {"youngs_modulus", 1.0e6},
-          {"poisson_ratio", 0.3}};
-}
-
-mpm::Scene block_scene(int cells, const char* update = "musl", const char* storage = "auto") {
-  // Grid box with a one-cell margin around a cube of `cells`^3 filled cells.
-  const double h = 1.0 / cells;
-  const nlohmann::json doc = {
-      {"dimension", 3},
-      {"grid",
-       {{"min", {-h, -h, -h}},
-        {"max", {1.0 + h, 1.0 + h, 1.0 + h}},
-        {"spacing", h},
-        {"storage", storage}}},
-      {"shape_function", "bspline2"},
-      {"scheme", {{"update", update}, {"transfer", "apic"}}},
-      {"materials", {material()}},
-      {"bodies",
-       {{{"material", "m"},
-         {"shape", {{"type", "box"}, {"min", {0.0, 0.0, 0.0}}, {"max", {1.0, 1.0, 1.0}}}},
-         {"particles_per_cell", 2},
-         {"velocity", {0.1, -0.2, 0.05}}}}},
-      {"time", {{"end", 1.0}}},
-  };
-  return mpm::parse_scene(doc, "<bench>");
-}
-
-mpm::Scene floor_scene(int cells, int method) {
-  const double h = 1.0 / cells;
-  const double base = method == 0 ? 0.0 : 0.3 * h;  // dual-grid floor off the grid lines
-  nlohmann::json wall;
-  if (method == 0) {
-    wall = {{"face", "zmin"}, {"condition", "slip"}, {"separable", true}};
-  } else {
-    wall = {{"name", "floor"},
-            {"surface",
-             {{"type", "mesh"},
-              {"file", mpm::test::floor_plane_file("mpm_bench", base, -h, 1.0 + h).string()},
-              {"remesh", true}}},
-            {"method", method == 1 || method == 4 ? "mortar"
-                       : method == 2              ? "one-way"
-                                                  : "enhanced"},
-            {"condition", "slip"},
-            {"separable", true}};
-    if (method == 4) wall["multiplier_radius"] = 1.0;
-  }
-  const nlohmann::json doc = {
-      {"dimension", 3},
-      {"grid", {{"min", {-h, -h, 0.0}}, {"max", {1.0 + h, 1.0 + h, 12.0 * h}}, {"spacing", h}}},
-      {"shape_function", "bspline2"},
-      {"scheme", {{"update", "musl"}, {"transfer", "apic"}}},
-      {"gravity", {0.0, 0.0, -9.81}},
-      {"materials", {material()}},
-      {"bodies",
-       {{{"material", "m"},
-         {"shape",
-          {{"type", "box"},
-           {"min", {0.0, 0.0, base}},
-           {"max", {1.0, 1.0, base + 10.0 * h}},
-           {"lattice", "body"}}},
-         {"particles_per_cell", 2}}}},
-      {"walls", {wall}},
-      {"time", {{"end", 1.0}}},
-  };
-  return mpm::parse_scene(doc, "<bench>");
-}
-
-/// Heap bytes in use (glibc: small blocks and mmapped ones).
-double heap_bytes() {
-  const struct mallinfo2 info = ::mallinfo2();
-  return static_cast<double>(info.uordblks + info.hblkhd);
-}
+using mpm::perf::block_scene;
+using mpm::perf::floor_scene;
+using mpm::perf::heap_bytes;
 
 void standard_step(benchmark::State& state, const char* update, const char* storage = "auto") {
   const mpm::Scene scene = block_scene(static_cast<int>(state.range(0)), update, storage);

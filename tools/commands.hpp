@@ -52,6 +52,20 @@ struct BenchArgs {
   int runs = 0;  ///< stability: random wall placements (0: the configuration's count)
 };
 
+struct PerfArgs {
+  int cells = 32;          ///< the block's cells per side (8 particles per cell)
+  int steps = 20;          ///< timed steps per round (after 5 settling steps)
+  int rounds = 5;          ///< rounds per scene, interleaved with the other scenes' (median)
+  double yardstick = 0.0;  ///< > 0: the yardstick's M particle-steps/s, same session
+  bool smoke = false;      ///< a tiny block, 1 round of 2 steps (the test suite's run)
+  std::filesystem::path json_file;
+};
+
+/// `mpm bench perf`: issue 9's step targets (throughput, parallel speed-up, the dual-grid floor
+/// against the standard one, memory per particle, scaling) timed in one run; 0, or 1 when a run
+/// faulted, 4 when the JSON cannot be written.
+int perf_command(const PerfArgs& args);
+
 /// `mpm bench accuracy|stability`: 0 when no run failed (a numerical fault or non-finite error;
 /// stability: any failure class), 1 when one did, 2 bad input, 4 cannot write.
 int bench_command(const BenchArgs& args);

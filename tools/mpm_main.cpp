@@ -50,10 +50,10 @@ int main(int argc, char** argv) {
       ->required();
   prep->add_option("--spacing", prep_args.spacing, "Standard grid spacing h")
       ->required()
-      ->check(CLI::PositiveNumber);
+      ->check(CLI::Range(1e-3, 1e3));
   prep->add_option("--thickness", prep_args.options.layer.thickness,
                    "Layer thickness t (default h)")
-      ->check(CLI::PositiveNumber);
+      ->check(CLI::Range(1e-3, 1e3));
   prep->add_option("--layers", prep_args.options.layer.layers, "Sub-layers")
       ->check(CLI::Range(1, 16));
   prep->add_option("--origin", prep_args.origin, "Grid box minimum X,Y,Z (default: fits the mesh)")
@@ -65,7 +65,7 @@ int main(int argc, char** argv) {
   prep->add_option("--shape", prep_args.shape, "Shape function of the standard grid")
       ->check(CLI::IsMember({"linear", "gimp", "bspline2"}));
   prep->add_option("--scale", prep_args.options.import.scale, "Scale the mesh (units)")
-      ->check(CLI::PositiveNumber);
+      ->check(CLI::Range(1e-3, 1e3));
   std::vector<double> translate, rotate;
   prep->add_option("--translate", translate, "Translate the mesh X,Y,Z")
       ->delimiter(',')
@@ -107,11 +107,14 @@ int main(int argc, char** argv) {
   mpm::tools::BenchArgs bench_args;
   bench_args.scripts_dir = MPM_SCRIPTS_DIR;
   bench_args.failures = "bench_failures";
+  mpm::tools::PerfArgs perf_args;
   CLI::App* bench = app.add_subcommand(
-      "bench", "Benchmarks: run time against error (accuracy), numerical stress (stability)");
-  bench->add_option("kind", bench_args.kind, "accuracy or stability")
+      "bench",
+      "Benchmarks: run time against error (accuracy), numerical stress (stability), the step's "
+      "speed targets (perf)");
+  bench->add_option("kind", bench_args.kind, "accuracy, stability or perf")
       ->required()
-      ->check(CLI::IsMember({"accuracy", "stability"}));
+      ->check(CLI::IsMember({"accuracy", "stability", "perf"}));
   bench->add_option("--case,--cases", bench_args.cases,
                     "accuracy: series; stability: part (throws, long, cfl, crossing); repeatable");
   bench->add_option("--method,--methods", bench_args.methods,
@@ -128,6 +131,21 @@ int main(int argc, char** argv) {
   bench->add_option("--seed", bench_args.seed, "stability: random seed of the wall placements");
   bench->add_option("--runs", bench_args.runs, "stability: number of random wall placements")
       ->check(CLI::Range(1, 100000));
+  bench->add_option("--cells", perf_args.cells, "perf: the block's cells per side (default 32)")
+      ->check(CLI::Range(4, 64));
+  bench->add_option("--steps", perf_args.steps, "perf: timed steps per round (default 20)")
+      ->check(CLI::Range(1, 10000));
+  bench
+      ->add_option("--rounds", perf_args.rounds,
+                   "perf: rounds per scene, interleaved with the other scenes' (default 5; the "
+                   "median is reported)")
+      ->check(CLI::Range(1, 100));
+  bench
+      ->add_option("--yardstick", perf_args.yardstick,
+                   "perf: the yardstick's M particle-steps/s on all threads, measured in the same "
+                   "session (../shared/tools/yardstick/run.sh)")
+      ->check(CLI::Range(1e-3, 1e3));
+  bench->add_option("--json", perf_args.json_file, "perf: write the timings as JSON");
   add_threads(bench);
 
   try {
@@ -152,6 +170,24 @@ int main(int argc, char** argv) {
   }
   if (*verify) return mpm::tools::verify_command(verify_args);
   if (*bench) {
+    // Each kind's own options: one given to another kind is refused, not ignored.
+    const bool perf = bench_args.kind == "perf";
+    for (const char* option :
+         {"--case", "--method", "--config", "--csv", "--plot", "--failures", "--seed", "--runs",
+          "--cells", "--steps", "--rounds", "--yardstick", "--json"}) {
+      const std::string name = option;
+      const bool perf_option = name == "--cells" || name == "--steps" || name == "--rounds" ||
+                               name == "--yardstick" || name == "--json";
+      if (bench->count(name) > 0 && perf_option != perf) {
+        std::cerr << "mpm bench " << bench_args.kind << ": " << name << " is not an option of "
+                  << bench_args.kind << "\n";
+        return mpm::kExitBadInput;
+      }
+    }
+    if (perf) {
+      perf_args.smoke = bench_args.smoke;
+      return mpm::tools::perf_command(perf_args);
+    }
     if (bench_args.config.empty()) {
       bench_args.config = std::filesystem::path(MPM_BENCH_DIR) / (bench_args.kind + ".json");
     }

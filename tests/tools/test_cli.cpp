@@ -540,6 +540,24 @@ TEST_F(CommandLine, BenchRejectsBadConfigurations) {
   expect_one_line(run_mpm({"bench", "accuracy", "--config", config.string()}), {config.string()});
 }
 
+// `mpm bench perf`: an option of another kind, or a perf option given to another kind, is refused
+// (not ignored), and a JSON path that cannot be written fails before the minute of timing.
+TEST_F(CommandLine, BenchPerfRefusesOtherKindsOptionsAndAnUnwritableJson) {
+  auto expect_one_line = [](const RunResult& r, int code, const std::vector<std::string>& parts) {
+    EXPECT_EQ(r.exit_code, code) << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+    for (const auto& part : parts) EXPECT_TRUE(contains(r.err, part)) << part << " in " << r.err;
+  };
+  expect_one_line(run_mpm({"bench", "perf", "--csv", (dir_ / "perf.csv").string()}), 2,
+                  {"--csv", "perf"});
+  expect_one_line(run_mpm({"bench", "accuracy", "--smoke", "--cells", "8"}), 2,
+                  {"--cells", "accuracy"});
+  const fs::path unwritable = dir_ / "no_such_folder" / "perf.json";
+  expect_one_line(run_mpm({"bench", "perf", "--json", unwritable.string()}), 4,
+                  {unwritable.string()});
+  EXPECT_FALSE(fs::exists(dir_ / "perf.csv"));
+}
+
 TEST_F(CommandLine, RejectsThreadCountOutOfRange) {
   write_scene(scene_2d());
   const RunResult r = run_mpm({"run", scene_file_.string(), "-o", out_dir_.string(), "-j", "0"});

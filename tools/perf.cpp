@@ -1,0 +1,302 @@
+// `mpm bench perf`: issue 9's step targets measured in one run, so that every ratio divides two
+// timings taken minutes apart on the same machine (this machine is shared and its speed drifts by
+// 10% within minutes: a number from another run is no reference). The scenes are
+// bench/bench_step.cpp's (bench/perf_scenes.hpp); the yardstick
+// (../shared/tools/yardstick/run.sh) is not part of the project, so its throughput, measured in
+// the same session, is passed in (--yardstick) to print the throughput ratio.
+
+#include <tbb/global_control.h>
+#include <tbb/info.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "commands.hpp"
+#include "mpm/run.hpp"
+#include "mpm/solver.hpp"
+#include "perf_scenes.hpp"
+
+namespace mpm::tools {
+namespace {
+
+using json = nlohmann::json;
+
+/// One timed scene: milliseconds per step, per phase, and the couplings' work per step.
+struct Timing {
+  std::size_t particles = 0;
+  double ms_per_step = 0.0;         ///< the median of the rounds
+  double bytes_per_particle = 0.0;  ///< heap grown while the solver was made and stepped once
+  PhaseTimes phases;                ///< milliseconds per step, over all rounds
+  double factorizations = 0.0, refinements = 0.0;  ///< per timed step (dual-grid walls)
+  std::string fault;
+
+  [[nodiscard]] double rate() const {  // particle-steps per second
+    return static_cast<double>(particles) / (1e-3 * ms_per_step);
+  }
+};
+
+/// A scene's solver, stepped `settle` times (the CFL step at 0.3, as bench_step), then timed in
+/// rounds of `steps` steps (on at most `threads` threads, 0: all) that the caller interleaves
+/// with the other scenes' rounds, so that a ratio of two scenes' medians is not a drift of the
+/// machine's speed between them.
+class Timed {
+ public:
+  Timed(const Scene& scene, int settle, int threads) : threads_(threads) {
+    const double heap = perf::heap_bytes();
+    solver_ = std::make_unique<Solver<3>>(scene);
+    dt_ = solver_->stable_dt(0.3);
+    auto limit = limit_threads();
+    solver_->step(dt_);
+    t_.particles = solver_->particle_count();
+    t_.bytes_per_particle =
+        (perf::heap_bytes() - heap + static_cast<double>(solver_->grid.committed_bytes())) /
+        static_cast<double>(t_.particles);
+    for (int k = 1; k < settle && !solver_->fault(); ++k) solver_->step(dt_);
+    work(factorizations0_, refinements0_);
+    before_ = solver_->phase_times();
+  }
+
+  void round(int steps) {
+    if (solver_->fault()) return;
+    auto limit = limit_threads();
+    const auto start = std::chrono::steady_clock::now();
+    for (int k = 0; k < steps && !solver_->fault(); ++k) solver_->step(dt_);
+    rounds_.push_back(
+        1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() /
+        steps);
+    steps_ += steps;
+  }
+
+  /// The median round and the phases and work per step over all rounds.
+  Timing result() {
+    if (solver_->fault()) t_.fault = *solver_->fault();
+    if (rounds_.empty()) return t_;
+    std::vector<double> sorted = rounds_;
+    std::sort(sorted.begin(), sorted.end());
+    t_.ms_per_step = sorted[sorted.size() / 2];
+    const PhaseTimes& after = solver_->phase_times();
+    const double per_step = 1e3 / steps_;
+    const auto phase = [&](double PhaseTimes::*member) {
+      t_.phases.*member = (after.*member - before_.*member) * per_step;
+    };
+    for (auto member : {&PhaseTimes::locate, &PhaseTimes::particles_to_grid,
+                        &PhaseTimes::grid_update, &PhaseTimes::walls, &PhaseTimes::coupling,
+                        &PhaseTimes::grid_to_particles, &PhaseTimes::stress, &PhaseTimes::advect}) {
+      phase(member);
+    }
+    work(t_.factorizations, t_.refinements);
+    t_.factorizations = (t_.factorizations - factorizations0_) / steps_;
+    t_.refinements = (t_.refinements - refinements0_) / steps_;
+    return t_;
+  }
+
+ private:
+  std::unique_ptr<tbb::global_control> limit_threads() const {
+    if (threads_ <= 0) return nullptr;
+    return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
+                                                 static_cast<std::size_t>(threads_));
+  }
+  void work(double& factorizations, double& refinements) const {
+    factorizations = refinements = 0.0;
+    for (const auto& w : solver_->dual_walls()) {
+      factorizations += static_cast<double>(w.enh.factorizations + w.factorizations);
+      refinements += static_cast<double>(w.enh.refinements + w.refinements);
+    }
+  }
+
+  int threads_;
+  std::unique_ptr<Solver<3>> solver_;
+  double dt_ = 0.0;
+  Timing t_;
+  PhaseTimes before_;
+  double factorizations0_ = 0.0, refinements0_ = 0.0;
+  double steps_ = 0.0;
+  std::vector<double> rounds_;
+};
+
+/// Times `scenes` in `rounds` interleaved rounds of `steps` steps each.
+std::vector<Timing> time_together(std::vector<std::unique_ptr<Timed>>& scenes, int rounds,
+                                  int steps) {
+  for (int r = 0; r < rounds; ++r) {
+    for (auto& s : scenes) s->round(steps);
+  }
+  std::vector<Timing> timings;
+  for (auto& s : scenes) timings.push_back(s->result());
+  return timings;
+}
+
+json to_json(const Timing& t) {
+  json j = {{"particles", t.particles},
+            {"ms_per_step", t.ms_per_step},
+            {"particle_steps_per_second", t.rate()},
+            {"bytes_per_particle", t.bytes_per_particle},
+            {"ms_phases",
+             {{"locate", t.phases.locate},
+              {"particles_to_grid", t.phases.particles_to_grid},
+              {"grid_update", t.phases.grid_update},
+              {"walls", t.phases.walls},
+              {"coupling", t.phases.coupling},
+              {"grid_to_particles", t.phases.grid_to_particles},
+              {"stress", t.phases.stress},
+              {"advect", t.phases.advect}}},
+            {"factorizations_per_step", t.factorizations},
+            {"refinement_passes_per_step", t.refinements}};
+  if (!t.fault.empty()) j["fault"] = t.fault;
+  return j;
+}
+
+/// The least-squares slope of log(time per step) against log(particles).
+double fitted_exponent(const std::vector<Timing>& runs) {
+  double sx = 0.0, sy = 0.0, sxx = 0.0, sxy = 0.0;
+  for (const Timing& t : runs) {
+    const double x = std::log(static_cast<double>(t.particles)), y = std::log(t.ms_per_step);
+    sx += x;
+    sy += y;
+    sxx += x * x;
+    sxy += x * y;
+  }
+  const auto n = static_cast<double>(runs.size());
+  return (n * sxy - sx * sy) / (n * sxx - sx * sx);
+}
+
+void print_row(const std::string& name, const Timing& t, const std::string& note) {
+  std::printf("  %-34s %9zu %10.2f %9.2f  %s\n", name.c_str(), t.particles, t.ms_per_step,
+              1e-6 * t.rate(), note.c_str());
+}
+
+std::string fixed(double value, int digits = 2) {
+  char text[32];
+  std::snprintf(text, sizeof text, "%.*f", digits, value);
+  return text;
+}
+
+}  // namespace
+
+int perf_command(const PerfArgs& args) {
+  const int cells = args.smoke ? 6 : args.cells;
+  const int steps = args.smoke ? 2 : args.steps;
+  const int rounds = args.smoke ? 1 : args.rounds;
+  const int settle = 5;
+  const int threads = static_cast<int>(
+      tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism));
+  // The JSON file is opened first: a path that cannot be written fails before the minute of
+  // timing, not after it.
+  std::ofstream out;
+  if (!args.json_file.empty()) {
+    out.open(args.json_file);
+    if (!out) {
+      std::cerr << "mpm bench perf: cannot write " << args.json_file.string() << "\n";
+      return kExitIo;
+    }
+  }
+  json report = {{"cells", cells}, {"steps", steps}, {"rounds", rounds}, {"threads", threads}};
+  bool faulted = false;
+  auto note_fault = [&](const std::string& name, const Timing& t) {
+    if (t.fault.empty()) return;
+    faulted = true;
+    std::cerr << "mpm bench perf: " << name << ": numerical fault: " << t.fault << "\n";
+  };
+  std::printf(
+      "mpm bench perf: %d^3-cell block, %d rounds of %d timed steps each (median), %d "
+      "threads\n",
+      cells, rounds, steps, threads);
+  std::printf("  %-34s %9s %10s %9s\n", "step", "particles", "ms/step", "M p-s/s");
+
+  // The standard step, MUSL (the default) and USL (one transfer each way, as the yardstick), on
+  // all threads and on one, in interleaved rounds.
+  std::vector<std::unique_ptr<Timed>> standard;
+  for (const char* update : {"musl", "usl"}) {
+    const Scene scene = perf::block_scene(cells, update);
+    standard.push_back(std::make_unique<Timed>(scene, settle, 0));
+    standard.push_back(std::make_unique<Timed>(scene, settle, 1));
+  }
+  const std::vector<Timing> blocks = time_together(standard, rounds, steps);
+  for (int u = 0; u < 2; ++u) {
+    const std::string update = u == 0 ? "musl" : "usl";
+    const Timing& all = blocks[static_cast<std::size_t>(2 * u)];
+    const Timing& one = blocks[static_cast<std::size_t>(2 * u + 1)];
+    note_fault(update, all);
+    note_fault(update, one);
+    const double speedup = one.ms_per_step / all.ms_per_step;
+    std::string note = "1 -> " + std::to_string(threads) + " threads: " + fixed(speedup);
+    json entry = {
+        {"all_threads", to_json(all)}, {"one_thread", to_json(one)}, {"parallel_speedup", speedup}};
+    if (args.yardstick > 0.0) {
+      const double ratio = 1e-6 * all.rate() / args.yardstick;
+      note += ", " + fixed(ratio) + " x yardstick";
+      entry["yardstick_ratio"] = ratio;
+    }
+    print_row("standard " + update, all, note);
+    print_row("standard " + update + ", 1 thread", one, "");
+    report["standard_" + update] = entry;
+  }
+
+  // The floor: 10% of the particles in the wall's layer, each wall method against the standard
+  // box wall, in interleaved rounds.
+  const char* methods[] = {"standard wall", "mortar", "one-way", "enhanced",
+                           "mortar, merged multipliers"};
+  const char* keys[] = {"standard", "mortar", "one_way", "enhanced", "mortar_merged"};
+  std::vector<std::unique_ptr<Timed>> floors;
+  for (int m = 0; m < 5; ++m) {
+    floors.push_back(std::make_unique<Timed>(perf::floor_scene(cells, m), settle, 0));
+  }
+  const std::vector<Timing> floor_times = time_together(floors, rounds, steps);
+  floors.clear();
+  json floor = json::object();
+  for (int m = 0; m < 5; ++m) {
+    const Timing& t = floor_times[static_cast<std::size_t>(m)];
+    note_fault(std::string("floor ") + methods[m], t);
+    json entry = to_json(t);
+    std::string note;
+    if (m > 0) {
+      const double ratio = t.ms_per_step / floor_times[0].ms_per_step;
+      entry["ratio_to_standard"] = ratio;
+      note = fixed(ratio) + " x standard (coupling " + fixed(t.phases.coupling) + " ms)";
+    }
+    print_row(std::string("floor, ") + methods[m], t, note);
+    floor[keys[m]] = entry;
+  }
+  report["floor"] = floor;
+
+  // Scaling: the MUSL block from about 10^4 to 10^6 particles (8 per cell), one size at a time.
+  const std::vector<int> sizes =
+      args.smoke ? std::vector<int>{4, 6} : std::vector<int>{11, 16, 24, 32, 50};
+  std::vector<Timing> scaling;
+  json scaling_runs = json::array();
+  for (const int n : sizes) {
+    std::vector<std::unique_ptr<Timed>> one;
+    one.push_back(std::make_unique<Timed>(perf::block_scene(n), 1, 0));
+    const Timing t = time_together(one, rounds, std::max(1, steps / 4)).front();
+    note_fault("scaling", t);
+    scaling.push_back(t);
+    scaling_runs.push_back(
+        {{"cells", n}, {"particles", t.particles}, {"ms_per_step", t.ms_per_step}});
+    print_row("scaling, " + std::to_string(n) + "^3 cells", t, "");
+  }
+  const double exponent = fitted_exponent(scaling);
+  std::printf("  time per step ~ particles^%.3f (least squares over %zu sizes)\n", exponent,
+              scaling.size());
+  std::printf("  memory: %.0f bytes per particle (standard MUSL, grid included)\n",
+              blocks[0].bytes_per_particle);
+  report["scaling"] = {{"runs", scaling_runs}, {"exponent", exponent}};
+
+  if (!args.json_file.empty()) {
+    out << report.dump(2) << "\n";
+    out.close();
+    if (!out) {
+      std::cerr << "mpm bench perf: cannot write " << args.json_file.string() << "\n";
+      return kExitIo;
+    }
+  }
+  return faulted ? 1 : kExitOk;
+}
+
+}  // namespace mpm::tools
