@@ -1,6 +1,6 @@
-// `mpm bench perf`: issue 9's step targets measured in one run, so that every ratio divides two
-// timings taken minutes apart on the same machine (this machine is shared and its speed drifts by
-// 10% within minutes: a number from another run is no reference). The scenes are
+// `mpm bench perf`: issue 9's step targets measured in one run, every ratio between timings of
+// rounds interleaved with each other (this machine is shared and its speed drifts by 10% within
+// minutes: a number from another run is no reference). The scenes are
 // bench/bench_step.cpp's (bench/perf_scenes.hpp); the yardstick
 // (../shared/tools/yardstick/run.sh) is not part of the project, so its throughput, measured in
 // the same session, is passed in (--yardstick) to print the throughput ratio.
