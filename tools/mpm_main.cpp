@@ -50,10 +50,10 @@ int main(int argc, char** argv) {
       ->required();
   prep->add_option("--spacing", prep_args.spacing, "Standard grid spacing h")
       ->required()
-      ->check(CLI::Range(1e-3, 1e3));
+      ->check(CLI::PositiveNumber);
   prep->add_option("--thickness", prep_args.options.layer.thickness,
                    "Layer thickness t (default h)")
-      ->check(CLI::Range(1e-3, 1e3));
+      ->check(CLI::PositiveNumber);
   prep->add_option("--layers", prep_args.options.layer.layers, "Sub-layers")
       ->check(CLI::Range(1, 16));
   prep->add_option("--origin", prep_args.origin, "Grid box minimum X,Y,Z (default: fits the mesh)")
@@ -65,7 +65,7 @@ int main(int argc, char** argv) {
   prep->add_option("--shape", prep_args.shape, "Shape function of the standard grid")
       ->check(CLI::IsMember({"linear", "gimp", "bspline2"}));
   prep->add_option("--scale", prep_args.options.import.scale, "Scale the mesh (units)")
-      ->check(CLI::Range(1e-3, 1e3));
+      ->check(CLI::PositiveNumber);
   std::vector<double> translate, rotate;
   prep->add_option("--translate", translate, "Translate the mesh X,Y,Z")
       ->delimiter(',')
