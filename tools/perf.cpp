@@ -219,6 +219,7 @@ int perf_command(const PerfArgs& args) {
     standard.push_back(std::make_unique<Timed>(scene, settle, 1));
   }
   const std::vector<Timing> blocks = time_together(standard, rounds, steps);
+  standard.clear();  // the floors and the scaling runs need the memory
   for (int u = 0; u < 2; ++u) {
     const std::string update = u == 0 ? "musl" : "usl";
     const Timing& all = blocks[static_cast<std::size_t>(2 * u)];
@@ -249,7 +250,7 @@ int perf_command(const PerfArgs& args) {
     floors.push_back(std::make_unique<Timed>(perf::floor_scene(cells, m), settle, 0));
   }
   const std::vector<Timing> floor_times = time_together(floors, rounds, steps);
-  floors.clear();
+  floors.clear();  // likewise
   json floor = json::object();
   for (int m = 0; m < 5; ++m) {
     const Timing& t = floor_times[static_cast<std::size_t>(m)];
