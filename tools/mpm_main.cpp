@@ -1,6 +1,8 @@
 // `mpm`: one command, one subcommand per job. Parse, call the library, report.
 
 #include <iostream>
+#include <string>
+#include <utility>
 
 #include <tbb/global_control.h>
 #include <CLI/CLI.hpp>
@@ -171,19 +173,29 @@ int main(int argc, char** argv) {
   if (*verify) return mpm::tools::verify_command(verify_args);
   if (*bench) {
     // Each kind's own options: one given to another kind is refused, not ignored.
-    const bool perf = bench_args.kind == "perf";
-    for (const char* option :
-         {"--case", "--method", "--config", "--csv", "--plot", "--failures", "--seed", "--runs",
-          "--cells", "--steps", "--rounds", "--yardstick", "--json"}) {
-      const std::string name = option;
-      const bool perf_option = name == "--cells" || name == "--steps" || name == "--rounds" ||
-                               name == "--yardstick" || name == "--json";
-      if (bench->count(name) > 0 && perf_option != perf) {
-        std::cerr << "mpm bench " << bench_args.kind << ": " << name << " is not an option of "
-                  << bench_args.kind << "\n";
+    const std::pair<const char*, const char*> kinds_of[] = {{"--case", "accuracy and stability"},
+                                                            {"--method", "accuracy and stability"},
+                                                            {"--config", "accuracy and stability"},
+                                                            {"--csv", "accuracy and stability"},
+                                                            {"--plot", "accuracy and stability"},
+                                                            {"--failures", "stability"},
+                                                            {"--seed", "stability"},
+                                                            {"--runs", "stability"},
+                                                            {"--cells", "perf"},
+                                                            {"--steps", "perf"},
+                                                            {"--rounds", "perf"},
+                                                            {"--yardstick", "perf"},
+                                                            {"--json", "perf"}};
+    for (const auto& [option, kinds] : kinds_of) {
+      const std::string allowed = std::string(" ") + kinds + " ";
+      if (bench->count(option) > 0 &&
+          allowed.find(" " + bench_args.kind + " ") == std::string::npos) {
+        std::cerr << "mpm bench " << bench_args.kind << ": " << option << " is not an option of "
+                  << bench_args.kind << " (only of " << kinds << ")\n";
         return mpm::kExitBadInput;
       }
     }
+    const bool perf = bench_args.kind == "perf";
     if (perf) {
       perf_args.smoke = bench_args.smoke;
       return mpm::tools::perf_command(perf_args);

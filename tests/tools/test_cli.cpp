@@ -540,8 +540,9 @@ TEST_F(CommandLine, BenchRejectsBadConfigurations) {
   expect_one_line(run_mpm({"bench", "accuracy", "--config", config.string()}), {config.string()});
 }
 
-// `mpm bench perf`: an option of another kind, or a perf option given to another kind, is refused
-// (not ignored), and a JSON path that cannot be written fails before the minute of timing.
+// `mpm bench`: an option of another kind (perf's to accuracy, stability's to accuracy, the others'
+// to perf) is refused, not ignored, and a JSON path that cannot be written fails before perf's
+// minute of timing.
 TEST_F(CommandLine, BenchPerfRefusesOtherKindsOptionsAndAnUnwritableJson) {
   auto expect_one_line = [](const RunResult& r, int code, const std::vector<std::string>& parts) {
     EXPECT_EQ(r.exit_code, code) << r.err;
@@ -552,6 +553,8 @@ TEST_F(CommandLine, BenchPerfRefusesOtherKindsOptionsAndAnUnwritableJson) {
                   {"--csv", "perf"});
   expect_one_line(run_mpm({"bench", "accuracy", "--smoke", "--cells", "8"}), 2,
                   {"--cells", "accuracy"});
+  expect_one_line(run_mpm({"bench", "accuracy", "--smoke", "--seed", "3"}), 2,
+                  {"--seed", "accuracy", "stability"});
   const fs::path unwritable = dir_ / "no_such_folder" / "perf.json";
   expect_one_line(run_mpm({"bench", "perf", "--json", unwritable.string()}), 4,
                   {unwritable.string()});
