@@ -61,42 +61,29 @@ void BM_FloorStep3D(benchmark::State& state) {
   for (int k = 0; k < 5; ++k) solver.step(dt);  // settle onto the floor
   // Factorisations and refinement passes of the timed steps only (the settling steps factorise
   // for every new contact pattern).
-  const auto solver_work = [&](std::size_t& factorizations, std::size_t& refinements) {
-    factorizations = refinements = 0;
-    for (const auto& w : solver.dual_walls()) {
-      factorizations += w.enh.factorizations + w.factorizations;
-      refinements += w.enh.refinements + w.refinements;
-    }
-  };
-  std::size_t factorizations0 = 0, refinements0 = 0;
-  solver_work(factorizations0, refinements0);
+  const mpm::perf::SolveCount solves0 = mpm::perf::solve_count(solver);
   const mpm::PhaseTimes before = solver.phase_times();
   for (auto _ : state) solver.step(dt);
   // Milliseconds per step in each phase (where the dual-grid overhead goes).
-  const mpm::PhaseTimes& after = solver.phase_times();
-  const double per_step = 1e3 / static_cast<double>(state.iterations());
-  const auto phase = [&](const char* name, double mpm::PhaseTimes::*member) {
-    state.counters[name] = (after.*member - before.*member) * per_step;
-  };
-  phase("ms_locate", &mpm::PhaseTimes::locate);
-  phase("ms_p2g", &mpm::PhaseTimes::particles_to_grid);
-  phase("ms_grid", &mpm::PhaseTimes::grid_update);
-  phase("ms_walls", &mpm::PhaseTimes::walls);
-  phase("ms_coupling", &mpm::PhaseTimes::coupling);
-  phase("ms_g2p", &mpm::PhaseTimes::grid_to_particles);
-  phase("ms_stress", &mpm::PhaseTimes::stress);
-  std::size_t in_layer = 0, factorizations = 0, refinements = 0;
+  const auto steps = static_cast<double>(state.iterations());
+  const mpm::PhaseTimes ms = mpm::perf::ms_per_step(solver.phase_times(), before, steps);
+  state.counters["ms_locate"] = ms.locate;
+  state.counters["ms_p2g"] = ms.particles_to_grid;
+  state.counters["ms_grid"] = ms.grid_update;
+  state.counters["ms_walls"] = ms.walls;
+  state.counters["ms_coupling"] = ms.coupling;
+  state.counters["ms_g2p"] = ms.grid_to_particles;
+  state.counters["ms_stress"] = ms.stress;
+  std::size_t in_layer = 0;
   for (const auto& w : solver.dual_walls()) in_layer += w.layer_particles;
-  solver_work(factorizations, refinements);
   state.SetItemsProcessed(static_cast<int64_t>(state.iterations()) *
                           static_cast<int64_t>(solver.particle_count()));
   state.counters["particles"] = static_cast<double>(solver.particle_count());
   if (!solver.dual_walls().empty()) {
+    const mpm::perf::SolveCount solves = mpm::perf::solve_count(solver);
     state.counters["factorizations_per_step"] =
-        static_cast<double>(factorizations - factorizations0) /
-        static_cast<double>(state.iterations());
-    state.counters["refinements_per_step"] =
-        static_cast<double>(refinements - refinements0) / static_cast<double>(state.iterations());
+        (solves.factorizations - solves0.factorizations) / steps;
+    state.counters["refinements_per_step"] = (solves.refinements - solves0.refinements) / steps;
   }
   state.counters["in_layer"] =
       static_cast<double>(in_layer) / static_cast<double>(solver.particle_count());

@@ -20,6 +20,7 @@
 #include <nlohmann/json.hpp>
 
 #include "mpm/scene.hpp"
+#include "mpm/solver.hpp"
 #include "support/shapes.hpp"
 
 namespace mpm::perf {
@@ -100,6 +101,32 @@ inline mpm::Scene floor_scene(int cells, int method) {
 inline double heap_bytes() {
   const struct mallinfo2 info = ::mallinfo2();
   return static_cast<double>(info.uordblks + info.hblkhd);
+}
+
+/// The dual-grid walls' factorisations and refinement passes so far, summed over the walls
+/// (Simulation::coupling_work()).
+struct SolveCount {
+  double factorizations = 0.0, refinements = 0.0;
+};
+inline SolveCount solve_count(const Simulation& sim) {
+  SolveCount count;
+  for (const CouplingWork& c : sim.coupling_work()) {
+    count.factorizations += static_cast<double>(c.factorizations);
+    count.refinements += static_cast<double>(c.refinement_passes);
+  }
+  return count;
+}
+
+/// Milliseconds per step in each phase between two readings of the phase timers `steps` steps
+/// apart.
+inline PhaseTimes ms_per_step(const PhaseTimes& after, const PhaseTimes& before, double steps) {
+  PhaseTimes ms;
+  for (auto member : {&PhaseTimes::locate, &PhaseTimes::particles_to_grid, &PhaseTimes::grid_update,
+                      &PhaseTimes::walls, &PhaseTimes::coupling, &PhaseTimes::grid_to_particles,
+                      &PhaseTimes::stress, &PhaseTimes::advect}) {
+    ms.*member = (after.*member - before.*member) * 1e3 / steps;
+  }
+  return ms;
 }
 
 }  // namespace mpm::perf

@@ -195,8 +195,7 @@ int main(int argc, char** argv) {
         return mpm::kExitBadInput;
       }
     }
-    const bool perf = bench_args.kind == "perf";
-    if (perf) {
+    if (bench_args.kind == "perf") {
       perf_args.smoke = bench_args.smoke;
       return mpm::tools::perf_command(perf_args);
     }

@@ -60,7 +60,7 @@ class Timed {
         (perf::heap_bytes() - heap + static_cast<double>(solver_->grid.committed_bytes())) /
         static_cast<double>(t_.particles);
     for (int k = 1; k < settle && !solver_->fault(); ++k) solver_->step(dt_);
-    work(factorizations0_, refinements0_);
+    solves0_ = perf::solve_count(*solver_);
     before_ = solver_->phase_times();
   }
 
@@ -82,19 +82,10 @@ class Timed {
     std::vector<double> sorted = rounds_;
     std::sort(sorted.begin(), sorted.end());
     t_.ms_per_step = sorted[sorted.size() / 2];
-    const PhaseTimes& after = solver_->phase_times();
-    const double per_step = 1e3 / steps_;
-    const auto phase = [&](double PhaseTimes::*member) {
-      t_.phases.*member = (after.*member - before_.*member) * per_step;
-    };
-    for (auto member : {&PhaseTimes::locate, &PhaseTimes::particles_to_grid,
-                        &PhaseTimes::grid_update, &PhaseTimes::walls, &PhaseTimes::coupling,
-                        &PhaseTimes::grid_to_particles, &PhaseTimes::stress, &PhaseTimes::advect}) {
-      phase(member);
-    }
-    work(t_.factorizations, t_.refinements);
-    t_.factorizations = (t_.factorizations - factorizations0_) / steps_;
-    t_.refinements = (t_.refinements - refinements0_) / steps_;
+    t_.phases = perf::ms_per_step(solver_->phase_times(), before_, steps_);
+    const perf::SolveCount solves = perf::solve_count(*solver_);
+    t_.factorizations = (solves.factorizations - solves0_.factorizations) / steps_;
+    t_.refinements = (solves.refinements - solves0_.refinements) / steps_;
     return t_;
   }
 
@@ -104,20 +95,13 @@ class Timed {
     return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
                                                  static_cast<std::size_t>(threads_));
   }
-  void work(double& factorizations, double& refinements) const {
-    factorizations = refinements = 0.0;
-    for (const auto& w : solver_->dual_walls()) {
-      factorizations += static_cast<double>(w.enh.factorizations + w.factorizations);
-      refinements += static_cast<double>(w.enh.refinements + w.refinements);
-    }
-  }
 
   int threads_;
   std::unique_ptr<Solver<3>> solver_;
   double dt_ = 0.0;
   Timing t_;
   PhaseTimes before_;
-  double factorizations0_ = 0.0, refinements0_ = 0.0;
+  perf::SolveCount solves0_;  ///< the couplings' work before the timed rounds
   double steps_ = 0.0;
   std::vector<double> rounds_;
 };
