@@ -313,6 +313,18 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
                      e.product_work[2]);
       });
   e.kkt_ready = false;  // new masses: the contact system is solved anew
+  e.kkt_formed = false;
+  e.blocks_pattern = (pattern_hash(e.schur) * 1000003U + pattern_hash(e.coupled_r)) * 1000003U +
+                     pattern_hash(e.grid_rr);
+  // S_A plus a relative 1e-10 shift on the held rows: redundant multipliers (more than the
+  // active nodes can satisfy, the inf-sup problem of DESIGN.md) keep the system quasi-definite.
+  double largest = 0.0;
+  for (Eigen::Index i = 0; i < e.grid_rr.outerSize(); ++i) {
+    for (Sparse::InnerIterator it(e.grid_rr, i); it; ++it) {
+      if (it.row() == i) largest = std::max(largest, it.value());
+    }
+  }
+  e.kkt_shift = 1e-10 * largest;
   if (ns > 0 && !factorise_or_reuse(*e.schur_solver, e.schur, e.schur_base, e.schur_pattern,
                                     e.schur_factored, true, e.schur_refine, e.factorizations)) {
     fault_ = "dual wall \"" + w.spec->name +
@@ -369,6 +381,86 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
     if (sticky || mu_of[i] > 0.0) on_of[i] = Contact::stick;
   }
 
+  // The contact matrix of the held rows e.rows (for the current contact states),
+  //
+  //   [ K (x) I_D   -W_rows    ]
+  //   [ -W_rows^T   -S_A,rows - shift I ],
+  //
+  // whose unknowns are v^alpha (node-major, D per node) and one impulse per held row: formed
+  // into e.kkt_matrix to be factorised, or applied by blocks for refinement (apply_kkt).
+  auto form_kkt = [&]() {
+    const auto& rows = e.rows;
+    const Eigen::Index nv = ns * D, nc = static_cast<Eigen::Index>(rows.size());
+    // The held rows of multiplier i are row_first[i] .. row_first[i + 1] - 1 (rows are listed
+    // by multiplier).
+    std::vector<int>& row_first = e.row_first;
+    row_first.assign(static_cast<std::size_t>(k) + 1, 0);
+    for (const auto& row : rows) ++row_first[static_cast<std::size_t>(row.first) + 1];
+    for (Eigen::Index i = 0; i < k; ++i) row_first[i + 1] += row_first[i];
+    auto& t = e.kkt_entries;
+    t.clear();
+    for (Eigen::Index c = 0; c < e.schur.outerSize(); ++c) {
+      for (Sparse::InnerIterator it(e.schur, c); it; ++it) {
+        for (int d = 0; d < D; ++d) t.emplace_back(it.row() * D + d, c * D + d, it.value());
+      }
+    }
+    for (Eigen::Index i = 0; i < e.coupled_r.outerSize(); ++i) {
+      for (Sparse::InnerIterator it(e.coupled_r, i); it; ++it) {
+        for (int c = row_first[i]; c < row_first[i + 1]; ++c) {
+          const Vec<D>& dir = rows[c].second;
+          for (int d = 0; d < D; ++d) {
+            if (dir[d] == 0.0) continue;
+            t.emplace_back(it.row() * D + d, nv + c, -it.value() * dir[d]);
+            t.emplace_back(nv + c, it.row() * D + d, -it.value() * dir[d]);
+          }
+        }
+      }
+    }
+    for (Eigen::Index i = 0; i < e.grid_rr.outerSize(); ++i) {
+      for (Sparse::InnerIterator it(e.grid_rr, i); it; ++it) {
+        for (int c = row_first[i]; c < row_first[i + 1]; ++c) {
+          for (int c2 = row_first[it.row()]; c2 < row_first[it.row() + 1]; ++c2) {
+            const double dd = rows[c].second.dot(rows[c2].second);
+            if (dd != 0.0) t.emplace_back(nv + c2, nv + c, -it.value() * dd);
+          }
+        }
+      }
+    }
+    for (Eigen::Index c = 0; c < nc; ++c) t.emplace_back(nv + c, nv + c, -e.kkt_shift);
+    assign_by_columns(e.kkt_matrix, nv + nc, nv + nc, t, e.assembly_work[0]);
+    e.kkt_formed = true;
+  };
+  // y = the contact matrix times x, by blocks: with V the v^alpha part as ns x D and J the
+  // held rows' impulses summed per multiplier (k x D),
+  //   y_v = K V - W J,   y_c = -n_c . (W^T V + S_A J)_i(c) - shift x_c.
+  // The same products as the formed matrix's, in another order (round-off apart).
+  auto apply_kkt = [&](const Eigen::VectorXd& x, Eigen::VectorXd& y) {
+    const auto& rows = e.rows;
+    const Eigen::Index nv = ns * D, nc = static_cast<Eigen::Index>(rows.size());
+    Block& v = e.apply_v;
+    Block& yv = e.apply_y;
+    Block& j = e.apply_j;
+    Block& t = e.apply_t;
+    v.resize(ns, D);
+    for (Eigen::Index c = 0; c < ns; ++c) {
+      for (int d = 0; d < D; ++d) v(c, d) = x[c * D + d];
+    }
+    j.setZero(k, D);
+    for (Eigen::Index c = 0; c < nc; ++c)
+      j.row(rows[c].first) += x[nv + c] * rows[c].second.transpose();
+    yv.noalias() = e.schur * v;
+    yv.noalias() -= e.coupled_r * j;
+    y.resize(nv + nc);
+    for (Eigen::Index c = 0; c < ns; ++c) {
+      for (int d = 0; d < D; ++d) y[c * D + d] = yv(c, d);
+    }
+    t.noalias() = e.coupled_r.transpose() * v;
+    t.noalias() += e.grid_rr * j;
+    for (Eigen::Index c = 0; c < nc; ++c) {
+      y[nv + c] = -rows[c].second.dot(t.row(rows[c].first).transpose()) - e.kkt_shift * x[nv + c];
+    }
+  };
+
   // Solve for the current contact states (and friction loads); returns false if the system
   // could not be factorised.
   auto solve = [&]() {
@@ -411,55 +503,23 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         signature[c] = 4 * rows[c].first + static_cast<int>(state[rows[c].first]);
       }
       if (!e.kkt_ready || signature != e.kkt_signature) {
-        // The held rows of multiplier i are row_first[i] .. row_first[i + 1] - 1 (rows are
-        // listed by multiplier).
-        std::vector<int>& row_first = e.row_first;
-        row_first.assign(static_cast<std::size_t>(k) + 1, 0);
-        for (const auto& row : rows) ++row_first[static_cast<std::size_t>(row.first) + 1];
-        for (Eigen::Index i = 0; i < k; ++i) row_first[i + 1] += row_first[i];
-        auto& t = e.kkt_entries;
-        t.clear();
-        for (Eigen::Index c = 0; c < e.schur.outerSize(); ++c) {
-          for (Sparse::InnerIterator it(e.schur, c); it; ++it) {
-            for (int d = 0; d < D; ++d) t.emplace_back(it.row() * D + d, c * D + d, it.value());
+        // The same rows on the same blocks' patterns as the factorisation in hand (contact
+        // that has not changed since an earlier step): the masses moved a little, so that
+        // factorisation is a close preconditioner and a few refinement passes solve the new
+        // matrix (to 1e-10: refine()), which they apply by blocks: the matrix is not formed.
+        // Otherwise it is formed, and factorised unless its pattern is the factorised one's
+        // (after a restore the blocks' patterns of the factorised matrix are not known).
+        const bool same_rows = signature == e.kkt_signature;
+        e.kkt_formed = false;
+        if (e.kkt_factored && same_rows && e.blocks_pattern == e.kkt_blocks) {
+          e.kkt_refine = true;
+        } else {
+          form_kkt();
+          if (!factorise_or_reuse(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_pattern,
+                                  e.kkt_factored, same_rows, e.kkt_refine, e.factorizations)) {
+            return false;
           }
-        }
-        for (Eigen::Index i = 0; i < e.coupled_r.outerSize(); ++i) {
-          for (Sparse::InnerIterator it(e.coupled_r, i); it; ++it) {
-            for (int c = row_first[i]; c < row_first[i + 1]; ++c) {
-              const Vec<D>& dir = rows[c].second;
-              for (int d = 0; d < D; ++d) {
-                if (dir[d] == 0.0) continue;
-                t.emplace_back(it.row() * D + d, nv + c, -it.value() * dir[d]);
-                t.emplace_back(nv + c, it.row() * D + d, -it.value() * dir[d]);
-              }
-            }
-          }
-        }
-        // S_A plus a relative 1e-10 shift: redundant multipliers (more than the active nodes can
-        // satisfy, the inf-sup problem of DESIGN.md) keep the system quasi-definite.
-        double scale = 0.0;
-        for (Eigen::Index i = 0; i < e.grid_rr.outerSize(); ++i) {
-          for (Sparse::InnerIterator it(e.grid_rr, i); it; ++it) {
-            if (it.row() == i) scale = std::max(scale, it.value());
-            for (int c = row_first[i]; c < row_first[i + 1]; ++c) {
-              for (int c2 = row_first[it.row()]; c2 < row_first[it.row() + 1]; ++c2) {
-                const double dd = rows[c].second.dot(rows[c2].second);
-                if (dd != 0.0) t.emplace_back(nv + c2, nv + c, -it.value() * dd);
-              }
-            }
-          }
-        }
-        for (Eigen::Index c = 0; c < nc; ++c) t.emplace_back(nv + c, nv + c, -1e-10 * scale);
-        assign_by_columns(e.kkt_matrix, nv + nc, nv + nc, t, e.assembly_work[0]);
-        // The same rows on the same pattern as the factorisation in hand (contact that has not
-        // changed since an earlier step): the masses moved a little, so that factorisation is a
-        // close preconditioner and a few refinement passes solve the new matrix (to 1e-10:
-        // refine()); only a pattern or row change, or a refinement that stalls, refactorises.
-        if (!factorise_or_reuse(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_pattern,
-                                e.kkt_factored, signature == e.kkt_signature, e.kkt_refine,
-                                e.factorizations)) {
-          return false;
+          e.kkt_blocks = e.blocks_pattern;
         }
         e.kkt_ready = true;
         e.kkt_signature = signature;
@@ -475,9 +535,22 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         rhs[nv + c] = rows[c].second.dot(rt_minv_pa.row(rows[c].first).transpose());
       }
       Eigen::VectorXd& x = e.solution;
-      if (!refined_solve(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_refine, rhs, x,
-                         e.refinements, e.factorizations, e.kkt_work)) {
-        return false;
+      SolveWork<Eigen::VectorXd>& work = e.kkt_work;
+      const auto factor = [&](const Eigen::VectorXd& r, Eigen::VectorXd& out) {
+        ldlt_solve(*e.kkt_solver, r, out, work.work);
+      };
+      factor(rhs, x);
+      if (e.kkt_refine &&
+          !refine(rhs, x, apply_kkt, factor, e.refinements, work.residual, work.update)) {
+        // Unconverged: this step's matrix is factorised (formed first if refinement had only
+        // applied it).
+        if (!e.kkt_formed) form_kkt();
+        if (!factorise_or_reuse(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_pattern,
+                                e.kkt_factored, false, e.kkt_refine, e.factorizations)) {
+          return false;
+        }
+        e.kkt_blocks = e.blocks_pattern;
+        factor(rhs, x);
       }
       for (Eigen::Index c = 0; c < ns; ++c) {
         for (int d = 0; d < D; ++d) vs(c, d) = x[c * D + d];

@@ -1239,6 +1239,7 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     const auto& factored = c.integer(key + "factored", 2);
     const auto& signature = c.integer(key + "kkt_signature");
     e.kkt_signature.assign(signature.begin(), signature.end());
+    e.kkt_blocks = 0;  // not saved: the first step forms its matrix and compares patterns
     auto refactorise = [&](const std::string& name, Eigen::SparseMatrix<double>& base,
                            SparseLdlt& solver, std::size_t& pattern, bool& ok) {
       base = restore_sparse(c, name);
