@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <type_traits>
 #include <unordered_map>
 
 #include <tbb/blocked_range.h>
@@ -365,63 +366,123 @@ void Solver<D>::layer_scatter(bool with_force) {
     if (!with_force && !w.enhanced) std::fill(w.centroid.begin(), w.centroid.end(), Vec<D>::Zero());
   }
   if (dual_.empty()) return;
-  // Few particles live in layers; a serial loop keeps the scatter free of races.
-  for (std::size_t i = 0; i < layer_list_.size(); ++i) {
-    const auto p = static_cast<std::size_t>(layer_list_[i]);
-    DualWall<D>& w = dual_[P.layer_wall[p]];
-    const AlphaStencil<D>& st = layer_stencil_[i];
-    const double m = P.mass[p];
-    const Vec<D> v = P.velocity[p];
-    // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
-    // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md).
-    // The MUSL remap (with_force false) leaves C_p out as well: C_p^{n+1} is the gradient of
-    // the remapped field, and remapping with the old C_p would hand each particle its own C_p
-    // back, so a particle alone in a boundary cell would keep straining at a fixed rate that its
-    // stress never corrects (docs/verification.md, particle against a wall). Remapping only its
-    // spin (the skew part) mended the rolling disk but fed back through the wall constraint:
-    // a block on a one-cell incline blew up, and the debris scene threw a particle out at
-    // 27 m/s (docs/verification.md, rolling cylinder).
-    const Mat<D> C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
-    const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
-    const Mat<D> vs = -volume * P.stress[p];
-    const Vec<D> mb = m * body_acceleration_[P.body[p]];
-    // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma node is
-    // in contact where a particle lying over it (within the node's share of the facet,
-    // DualWall::touch_window, plus the particle's half-size) touches the wall: the particle's
-    // near edge (half its initial size as a cube, widened by the touch tolerance) reaches it.
-    const bool touch = with_force && w.spec->contact.separable;
-    double reach = 0.0, window = 0.0;
-    if (touch) {
-      const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
-      reach = (1.0 + w.spec->contact.touch_tolerance) * half;
-      window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
+  constexpr int kSlots = std::extent_v<decltype(AlphaStencil<D>::node)>;
+  if (with_force) {
+    // The layer particles by node, once a step (the remap has the same stencils): a counting
+    // sort that keeps the layer list's order at each node.
+    for (auto& w : dual_) w.scatter_first.assign(w.mass.size() + 1, 0);
+    for (std::size_t i = 0; i < layer_list_.size(); ++i) {
+      DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
+      const AlphaStencil<D>& st = layer_stencil_[i];
+      for (int k = 0; k < st.count; ++k)
+        ++w.scatter_first[static_cast<std::size_t>(st.node[k]) + 1];
     }
-    // The remap's nodal velocity is that of the particles at their centroid, which
-    // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced keeps the
-    // standard grid's C_p and has no use for it).
-    const bool centroids = !with_force && !w.enhanced;
-    Vec<D> at = Vec<D>::Zero();
-    if (centroids) {
-      for (int k = 0; k < st.count; ++k) at += st.N[k] * w.position[st.node[k]];
+    for (auto& w : dual_) {
+      w.scatter_nodes.clear();
+      for (std::size_t n = 0; n + 1 < w.scatter_first.size(); ++n) {
+        if (w.scatter_first[n + 1] > 0) w.scatter_nodes.push_back(static_cast<int>(n));
+        w.scatter_first[n + 1] += w.scatter_first[n];
+      }
+      w.scatter_entries.resize(static_cast<std::size_t>(w.scatter_first.back()));
     }
-    for (int k = 0; k < st.count; ++k) {
-      const int node = st.node[k];
-      const double N = st.N[k];
-      w.momentum[node] += N * m * (v + C * (w.position[node] - P.position[p]));
-      if (centroids) w.centroid[node] += N * m * at;
-      if (with_force) {
-        w.mass[node] += N * m;
-        w.force[node] += vs * st.dN[k] + N * mb;
-        const int wi = w.wall_index_of_node[node];
-        if (touch && wi >= 0) {
-          const Vec<D> d = P.position[p] - w.position[node];
-          const double normal = d.dot(w.wall_normal[wi]);
-          if ((d - normal * w.wall_normal[wi]).norm() <= window) {
-            w.touch_gap[node] = std::min(w.touch_gap[node], normal - reach);
-          }
-        }
+    for (std::size_t i = 0; i < layer_list_.size(); ++i) {
+      DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
+      const AlphaStencil<D>& st = layer_stencil_[i];
+      for (int k = 0; k < st.count; ++k) {
+        // scatter_first[n] runs ahead while filling, and is moved back below.
+        w.scatter_entries[static_cast<std::size_t>(w.scatter_first[st.node[k]]++)] =
+            static_cast<int>(i) * kSlots + k;
       }
     }
+    for (auto& w : dual_) {
+      for (std::size_t n = w.scatter_first.size() - 1; n > 0; --n) {
+        w.scatter_first[n] = w.scatter_first[n - 1];
+      }
+      w.scatter_first[0] = 0;
+    }
+  }
+  // Each layer particle's node-independent terms, in parallel.
+  layer_terms_.resize(layer_list_.size());
+  tbb::parallel_for(
+      tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+          const auto p = static_cast<std::size_t>(layer_list_[i]);
+          const DualWall<D>& w = dual_[P.layer_wall[p]];
+          const AlphaStencil<D>& st = layer_stencil_[i];
+          LayerTerms& t = layer_terms_[i];
+          t.x = P.position[p];
+          t.v = P.velocity[p];
+          t.m = P.mass[p];
+          // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine
+          // particle field gives v^alpha = 0 (the standard grid already reproduces it,
+          // docs/enhanced.md). The MUSL remap (with_force false) leaves C_p out as well:
+          // C_p^{n+1} is the gradient of the remapped field, and remapping with the old C_p
+          // would hand each particle its own C_p back, so a particle alone in a boundary cell
+          // would keep straining at a fixed rate that its stress never corrects
+          // (docs/verification.md, particle against a wall). Remapping only its spin (the skew
+          // part) mended the rolling disk but fed back through the wall constraint: a block on
+          // a one-cell incline blew up, and the debris scene threw a particle out at 27 m/s
+          // (docs/verification.md, rolling cylinder).
+          t.C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
+          if (with_force) {
+            const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
+            t.vs = -volume * P.stress[p];
+            t.mb = t.m * body_acceleration_[P.body[p]];
+          }
+          // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma
+          // node is in contact where a particle lying over it (within the node's share of the
+          // facet, DualWall::touch_window, plus the particle's half-size) touches the wall: the
+          // particle's near edge (half its initial size as a cube, widened by the touch
+          // tolerance) reaches it.
+          if (with_force && w.spec->contact.separable) {
+            const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
+            t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
+            t.window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
+          }
+          // The remap's nodal velocity is that of the particles at their centroid, which
+          // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced
+          // keeps the standard grid's C_p and has no use for it).
+          if (!with_force && !w.enhanced) {
+            t.at.setZero();
+            for (int k = 0; k < st.count; ++k) t.at += st.N[k] * w.position[st.node[k]];
+          }
+        }
+      });
+  // Each node sums its particles' terms in the layer list's order (the order of a serial
+  // scatter, so the sums are the same to the last bit), nodes in parallel: no two tasks write
+  // the same node.
+  for (auto& w : dual_) {
+    const bool touch = with_force && w.spec->contact.separable;
+    const bool centroids = !with_force && !w.enhanced;
+    tbb::parallel_for(
+        tbb::blocked_range<std::size_t>(0, w.scatter_nodes.size(), 256), [&](const auto& r) {
+          for (std::size_t j = r.begin(); j != r.end(); ++j) {
+            const int node = w.scatter_nodes[j];
+            const auto n = static_cast<std::size_t>(node);
+            const Vec<D>& at_node = w.position[n];
+            const int wi = w.wall_index_of_node[n];
+            for (int e = w.scatter_first[n]; e < w.scatter_first[n + 1]; ++e) {
+              const int code = w.scatter_entries[static_cast<std::size_t>(e)];
+              const auto i = static_cast<std::size_t>(code / kSlots);
+              const int k = code % kSlots;
+              const LayerTerms& t = layer_terms_[i];
+              const AlphaStencil<D>& st = layer_stencil_[i];
+              const double N = st.N[k];
+              w.momentum[n] += N * t.m * (t.v + t.C * (at_node - t.x));
+              if (centroids) w.centroid[n] += N * t.m * t.at;
+              if (!with_force) continue;
+              w.mass[n] += N * t.m;
+              w.force[n] += t.vs * st.dN[k] + N * t.mb;
+              if (touch && wi >= 0) {
+                const Vec<D> d = t.x - at_node;
+                const double normal = d.dot(w.wall_normal[static_cast<std::size_t>(wi)]);
+                if ((d - normal * w.wall_normal[static_cast<std::size_t>(wi)]).norm() <= t.window) {
+                  w.touch_gap[n] = std::min(w.touch_gap[n], normal - t.reach);
+                }
+              }
+            }
+          }
+        });
   }
 }
 

@@ -256,6 +256,12 @@ struct DualWall {
   Eigen::Matrix<double, Eigen::Dynamic, D> grid_block, layer_block, gap, lambda, residual, update;
   std::vector<double> solve_work;  ///< ldlt_solve()'s
   double min_cell_size = 0.0;      ///< for the CFL limit
+  /// This step's layer particles by boundary node (layer_scatter(), which sums each node's terms
+  /// on its own, in parallel): node n's (particle, stencil slot) pairs are
+  /// scatter_entries[scatter_first[n] .. scatter_first[n + 1]), coded as slot + place in the
+  /// layer list times the slots per cell, in layer-list order; scatter_nodes lists the nodes
+  /// that have any.
+  std::vector<int> scatter_first, scatter_entries, scatter_nodes;
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
   EnhancedState<D> enh;
