@@ -341,11 +341,38 @@ void Solver<D>::locate_in_layers() {
   }
   layer_stencil_.resize(layer_list_.size());
   layer_gradient_.resize(layer_list_.size());
+  layer_terms_.resize(layer_list_.size());
+  // Each layer particle's boundary-grid basis, and the terms of its scatters that depend
+  // neither on the node nor on what the step changes before them (layer_scatter(): its stress
+  // and body force are the step's first; its centroid point is where its basis puts it).
   tbb::parallel_for(
       tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
-          const int p = layer_list_[i];
-          layer_stencil_[i] = alpha_stencil(dual_[P.layer_wall[p]], layer_cell_[i], layer_xi_[i]);
+          const auto p = static_cast<std::size_t>(layer_list_[i]);
+          const DualWall<D>& w = dual_[P.layer_wall[p]];
+          const AlphaStencil<D>& st = layer_stencil_[i] =
+              alpha_stencil(w, layer_cell_[i], layer_xi_[i]);
+          LayerTerms& t = layer_terms_[i];
+          const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
+          t.vs = -volume * P.stress[p];
+          t.mb = P.mass[p] * body_acceleration_[P.body[p]];
+          // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma
+          // node is in contact where a particle lying over it (within the node's share of the
+          // facet, DualWall::touch_window, plus the particle's half-size) touches the wall: the
+          // particle's near edge (half its initial size as a cube, widened by the touch
+          // tolerance) reaches it.
+          if (w.spec->contact.separable) {
+            const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
+            t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
+            t.window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
+          }
+          // The MUSL remap's nodal velocity is that of the particles at their centroid, which
+          // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced
+          // keeps the standard grid's C_p and has no use for it).
+          if (!w.enhanced) {
+            t.at.setZero();
+            for (int k = 0; k < st.count; ++k) t.at += st.N[k] * w.position[st.node[k]];
+          }
         }
       });
 }
@@ -401,59 +428,22 @@ void Solver<D>::layer_scatter(bool with_force) {
       w.scatter_first[0] = 0;
     }
   }
-  // Each layer particle's node-independent terms, in parallel.
-  layer_terms_.resize(layer_list_.size());
-  tbb::parallel_for(
-      tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-          const auto p = static_cast<std::size_t>(layer_list_[i]);
-          const DualWall<D>& w = dual_[P.layer_wall[p]];
-          const AlphaStencil<D>& st = layer_stencil_[i];
-          LayerTerms& t = layer_terms_[i];
-          t.x = P.position[p];
-          t.v = P.velocity[p];
-          t.m = P.mass[p];
-          // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine
-          // particle field gives v^alpha = 0 (the standard grid already reproduces it,
-          // docs/enhanced.md). The MUSL remap (with_force false) leaves C_p out as well:
-          // C_p^{n+1} is the gradient of the remapped field, and remapping with the old C_p
-          // would hand each particle its own C_p back, so a particle alone in a boundary cell
-          // would keep straining at a fixed rate that its stress never corrects
-          // (docs/verification.md, particle against a wall). Remapping only its spin (the skew
-          // part) mended the rolling disk but fed back through the wall constraint: a block on
-          // a one-cell incline blew up, and the debris scene threw a particle out at 27 m/s
-          // (docs/verification.md, rolling cylinder).
-          t.C = apic && !w.enhanced && with_force ? P.affine[p] : Mat<D>::Zero();
-          if (with_force) {
-            const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
-            t.vs = -volume * P.stress[p];
-            t.mb = t.m * body_acceleration_[P.body[p]];
-          }
-          // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma
-          // node is in contact where a particle lying over it (within the node's share of the
-          // facet, DualWall::touch_window, plus the particle's half-size) touches the wall: the
-          // particle's near edge (half its initial size as a cube, widened by the touch
-          // tolerance) reaches it.
-          if (with_force && w.spec->contact.separable) {
-            const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
-            t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
-            t.window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
-          }
-          // The remap's nodal velocity is that of the particles at their centroid, which
-          // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced
-          // keeps the standard grid's C_p and has no use for it).
-          if (!with_force && !w.enhanced) {
-            t.at.setZero();
-            for (int k = 0; k < st.count; ++k) t.at += st.N[k] * w.position[st.node[k]];
-          }
-        }
-      });
   // Each node sums its particles' terms in the layer list's order (the order of a serial
   // scatter, so the sums are the same to the last bit), nodes in parallel: no two tasks write
   // the same node.
   for (auto& w : dual_) {
     const bool touch = with_force && w.spec->contact.separable;
     const bool centroids = !with_force && !w.enhanced;
+    // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
+    // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md). The
+    // MUSL remap (with_force false) leaves C_p out as well: C_p^{n+1} is the gradient of the
+    // remapped field, and remapping with the old C_p would hand each particle its own C_p back,
+    // so a particle alone in a boundary cell would keep straining at a fixed rate that its
+    // stress never corrects (docs/verification.md, particle against a wall). Remapping only its
+    // spin (the skew part) mended the rolling disk but fed back through the wall constraint: a
+    // block on a one-cell incline blew up, and the debris scene threw a particle out at 27 m/s
+    // (docs/verification.md, rolling cylinder).
+    const bool affine = apic && !w.enhanced && with_force;
     tbb::parallel_for(
         tbb::blocked_range<std::size_t>(0, w.scatter_nodes.size(), 256), [&](const auto& r) {
           for (std::size_t j = r.begin(); j != r.end(); ++j) {
@@ -465,16 +455,22 @@ void Solver<D>::layer_scatter(bool with_force) {
               const int code = w.scatter_entries[static_cast<std::size_t>(e)];
               const auto i = static_cast<std::size_t>(code / kSlots);
               const int k = code % kSlots;
+              const auto p = static_cast<std::size_t>(layer_list_[i]);
               const LayerTerms& t = layer_terms_[i];
               const AlphaStencil<D>& st = layer_stencil_[i];
               const double N = st.N[k];
-              w.momentum[n] += N * t.m * (t.v + t.C * (at_node - t.x));
-              if (centroids) w.centroid[n] += N * t.m * t.at;
+              const double m = P.mass[p];
+              if (affine) {
+                w.momentum[n] += N * m * (P.velocity[p] + P.affine[p] * (at_node - P.position[p]));
+              } else {
+                w.momentum[n] += N * m * P.velocity[p];
+              }
+              if (centroids) w.centroid[n] += N * m * t.at;
               if (!with_force) continue;
-              w.mass[n] += N * t.m;
+              w.mass[n] += N * m;
               w.force[n] += t.vs * st.dN[k] + N * t.mb;
               if (touch && wi >= 0) {
-                const Vec<D> d = t.x - at_node;
+                const Vec<D> d = P.position[p] - at_node;
                 const double normal = d.dot(w.wall_normal[static_cast<std::size_t>(wi)]);
                 if ((d - normal * w.wall_normal[static_cast<std::size_t>(wi)]).norm() <= t.window) {
                   w.touch_gap[n] = std::min(w.touch_gap[n], normal - t.reach);

@@ -245,13 +245,13 @@ class Solver final : public Simulation {
   std::vector<int> layer_cell_;            ///< per layer particle: its layer cell
   std::vector<Eigen::Vector3d> layer_xi_;  ///< and its natural coordinates there
   std::vector<Mat<D>> layer_gradient_;     ///< and its velocity gradient this step
-  /// layer_scatter()'s per layer particle: what it adds at each node of its stencil but the
-  /// node's weight (the particle's position x, velocity v, mass m, affine C, -V sigma, m b; the
-  /// centroid `at` for the remap; the touch test's reach and window).
+  /// Per layer particle, for layer_scatter() (locate_in_layers() fills them): -V sigma and m b
+  /// at the step's start, its point of the isoparametric map (`at`, for the remap's
+  /// centroids), and the touch test's reach and window (separable walls).
   struct LayerTerms {
-    Vec<D> x, v, mb, at;
-    Mat<D> C, vs;
-    double m, reach, window;
+    Vec<D> mb, at;
+    Mat<D> vs;
+    double reach, window;
   };
   std::vector<LayerTerms> layer_terms_;
   /// locate_in_layers() per chunk of particles: the particles a layer holds, with their wall,
