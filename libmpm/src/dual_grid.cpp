@@ -429,8 +429,8 @@ void Solver<D>::layer_scatter(bool with_force) {
     }
   }
   // Each node sums its particles' terms in the layer list's order (the order of a serial
-  // scatter, so the sums are the same to the last bit), nodes in parallel: no two tasks write
-  // the same node.
+  // scatter: the same sums, up to the compiler fusing a multiply-add differently), nodes in
+  // parallel: no two tasks write the same node.
   for (auto& w : dual_) {
     const bool touch = with_force && w.spec->contact.separable;
     const bool centroids = !with_force && !w.enhanced;
