@@ -535,22 +535,15 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         rhs[nv + c] = rows[c].second.dot(rt_minv_pa.row(rows[c].first).transpose());
       }
       Eigen::VectorXd& x = e.solution;
-      SolveWork<Eigen::VectorXd>& work = e.kkt_work;
-      const auto factor = [&](const Eigen::VectorXd& r, Eigen::VectorXd& out) {
-        ldlt_solve(*e.kkt_solver, r, out, work.work);
-      };
-      factor(rhs, x);
-      if (e.kkt_refine &&
-          !refine(rhs, x, apply_kkt, factor, e.refinements, work.residual, work.update)) {
-        // Unconverged: this step's matrix is factorised (formed first if refinement had only
-        // applied it).
+      // Refinement applies the matrix by blocks; unconverged, the matrix is formed (if it was
+      // not) and factorised.
+      const auto formed = [&]() -> const Sparse& {
         if (!e.kkt_formed) form_kkt();
-        if (!factorise_or_reuse(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_pattern,
-                                e.kkt_factored, false, e.kkt_refine, e.factorizations)) {
-          return false;
-        }
-        e.kkt_blocks = e.blocks_pattern;
-        factor(rhs, x);
+        return e.kkt_matrix;
+      };
+      if (!refined_solve(*e.kkt_solver, apply_kkt, formed, e.kkt_base, e.kkt_refine, rhs, x,
+                         e.refinements, e.factorizations, e.kkt_work)) {
+        return false;
       }
       for (Eigen::Index c = 0; c < ns; ++c) {
         for (int d = 0; d < D; ++d) vs(c, d) = x[c * D + d];
