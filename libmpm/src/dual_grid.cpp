@@ -181,6 +181,8 @@ void Solver<D>::setup_dual_walls() {
     w.velocity_new.assign(n, Vec<D>::Zero());
     w.centroid.assign(n, Vec<D>::Zero());
     w.touch_gap.assign(n, std::numeric_limits<double>::infinity());
+    w.scatter_count.assign(n, 0);
+    w.scatter_slot.assign(n, -1);
     w.enhanced = spec.method == CouplingMethod::enhanced;
     if (w.enhanced) {
       w.momentum_new.assign(n, Vec<D>::Zero());
@@ -237,8 +239,10 @@ void Solver<D>::setup_dual_walls() {
     for (int g = 0; g < groups; ++g) w.multiplier_first[g + 1] += w.multiplier_first[g];
     w.multiplier_nodes.resize(group.size());
     std::vector<int> fill(w.multiplier_first.begin(), w.multiplier_first.end() - 1);
+    w.multiplier_of_node.assign(w.position.size(), -1);
     for (std::size_t mu = 0; mu < group.size(); ++mu) {
       w.multiplier_nodes[static_cast<std::size_t>(fill[group[mu]]++)] = c.multiplier_node[mu];
+      w.multiplier_of_node[static_cast<std::size_t>(c.multiplier_node[mu])] = group[mu];
     }
 
     // The smallest cell extent (column height or wall edge) limits the stable step.
@@ -381,34 +385,48 @@ template <int D>
 void Solver<D>::layer_scatter(bool with_force) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
+  // Only the nodes the layer's particles reach hold anything: the arrays are cleared where the
+  // last step's (or, for the remap, this step's) particles reached, not over the whole layer
+  // (a hillside's layer is mostly empty).
   for (auto& w : dual_) {
-    if (with_force) {
-      std::fill(w.mass.begin(), w.mass.end(), 0.0);
-      std::fill(w.force.begin(), w.force.end(), Vec<D>::Zero());
-      if (w.spec->contact.separable) {
-        for (const int n : w.wall_nodes) w.touch_gap[n] = std::numeric_limits<double>::infinity();
+    for (const int node : w.scatter_nodes) {
+      const auto n = static_cast<std::size_t>(node);
+      w.momentum[n].setZero();
+      if (!with_force) {
+        if (!w.enhanced) w.centroid[n].setZero();
+        continue;
       }
+      w.mass[n] = 0.0;
+      w.force[n].setZero();
+      w.centroid[n].setZero();
+      w.velocity[n].setZero();
+      w.velocity_new[n].setZero();
+      if (w.enhanced) w.momentum_new[n].setZero();
+      w.touch_gap[n] = std::numeric_limits<double>::infinity();
     }
-    std::fill(w.momentum.begin(), w.momentum.end(), Vec<D>::Zero());
-    if (!with_force && !w.enhanced) std::fill(w.centroid.begin(), w.centroid.end(), Vec<D>::Zero());
   }
   if (dual_.empty()) return;
   constexpr int kSlots = std::extent_v<decltype(AlphaStencil<D>::node)>;
   if (with_force) {
     // The layer particles by node, once a step (the remap has the same stencils): a counting
-    // sort that keeps the layer list's order at each node.
-    for (auto& w : dual_) w.scatter_first.assign(w.mass.size() + 1, 0);
+    // sort over the nodes reached (in increasing order) that keeps the layer list's order at
+    // each node.
+    for (auto& w : dual_) w.scatter_nodes.clear();
     for (std::size_t i = 0; i < layer_list_.size(); ++i) {
       DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
       const AlphaStencil<D>& st = layer_stencil_[i];
-      for (int k = 0; k < st.count; ++k)
-        ++w.scatter_first[static_cast<std::size_t>(st.node[k]) + 1];
+      for (int k = 0; k < st.count; ++k) {
+        if (w.scatter_count[st.node[k]]++ == 0) w.scatter_nodes.push_back(st.node[k]);
+      }
     }
     for (auto& w : dual_) {
-      w.scatter_nodes.clear();
-      for (std::size_t n = 0; n + 1 < w.scatter_first.size(); ++n) {
-        if (w.scatter_first[n + 1] > 0) w.scatter_nodes.push_back(static_cast<int>(n));
-        w.scatter_first[n + 1] += w.scatter_first[n];
+      std::sort(w.scatter_nodes.begin(), w.scatter_nodes.end());
+      w.scatter_first.assign(w.scatter_nodes.size() + 1, 0);
+      for (std::size_t j = 0; j < w.scatter_nodes.size(); ++j) {
+        const auto n = static_cast<std::size_t>(w.scatter_nodes[j]);
+        w.scatter_slot[n] = static_cast<int>(j);
+        w.scatter_first[j + 1] = w.scatter_first[j] + w.scatter_count[n];
+        w.scatter_count[n] = 0;
       }
       w.scatter_entries.resize(static_cast<std::size_t>(w.scatter_first.back()));
     }
@@ -416,14 +434,15 @@ void Solver<D>::layer_scatter(bool with_force) {
       DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
       const AlphaStencil<D>& st = layer_stencil_[i];
       for (int k = 0; k < st.count; ++k) {
-        // scatter_first[n] runs ahead while filling, and is moved back below.
-        w.scatter_entries[static_cast<std::size_t>(w.scatter_first[st.node[k]]++)] =
+        // scatter_first[j] runs ahead while filling, and is moved back below.
+        w.scatter_entries[static_cast<std::size_t>(
+            w.scatter_first[static_cast<std::size_t>(w.scatter_slot[st.node[k]])]++)] =
             static_cast<int>(i) * kSlots + k;
       }
     }
     for (auto& w : dual_) {
-      for (std::size_t n = w.scatter_first.size() - 1; n > 0; --n) {
-        w.scatter_first[n] = w.scatter_first[n - 1];
+      for (std::size_t j = w.scatter_first.size() - 1; j > 0; --j) {
+        w.scatter_first[j] = w.scatter_first[j - 1];
       }
       w.scatter_first[0] = 0;
     }
@@ -451,7 +470,7 @@ void Solver<D>::layer_scatter(bool with_force) {
             const auto n = static_cast<std::size_t>(node);
             const Vec<D>& at_node = w.position[n];
             const int wi = w.wall_index_of_node[n];
-            for (int e = w.scatter_first[n]; e < w.scatter_first[n + 1]; ++e) {
+            for (int e = w.scatter_first[j]; e < w.scatter_first[j + 1]; ++e) {
               const int code = w.scatter_entries[static_cast<std::size_t>(e)];
               const auto i = static_cast<std::size_t>(code / kSlots);
               const int k = code % kSlots;
@@ -485,16 +504,13 @@ void Solver<D>::layer_scatter(bool with_force) {
 template <int D>
 void Solver<D>::layer_update(double dt) {
   for (auto& w : dual_) {
+    // Nodes no particle reaches hold nothing (layer_scatter() cleared them): velocities zero.
     if (w.enhanced) {
       // The velocities come from the coupled solve (layer_couple); keep p + dt f for it.
-      for (std::size_t n = 0; n < w.mass.size(); ++n) {
-        w.momentum_new[n] = w.momentum[n] + dt * w.force[n];
-      }
-      std::fill(w.velocity.begin(), w.velocity.end(), Vec<D>::Zero());
-      std::fill(w.velocity_new.begin(), w.velocity_new.end(), Vec<D>::Zero());
+      for (const int n : w.scatter_nodes) w.momentum_new[n] = w.momentum[n] + dt * w.force[n];
       continue;
     }
-    for (std::size_t n = 0; n < w.mass.size(); ++n) {
+    for (const int n : w.scatter_nodes) {
       node_velocities<D>(w.mass[n], w.momentum[n], w.force[n], dt, mass_threshold_, w.velocity[n],
                          w.velocity_new[n]);
     }
@@ -624,12 +640,17 @@ void Solver<D>::layer_couple(bool remapped) {
       std::vector<Eigen::Triplet<double>>& ba = w.layer_entries;
       ga.clear();
       ba.clear();
-      for (int mu = 0; mu + 1 < static_cast<int>(w.multiplier_first.size()); ++mu) {
-        bool carried = false;  // a Phi node of the multiplier carries mass
-        for (int j = w.multiplier_first[mu]; j < w.multiplier_first[mu + 1] && !carried; ++j) {
-          carried = w.mass[w.multiplier_nodes[j]] > coupling_threshold_;
-        }
-        if (!carried) continue;
+      // The multipliers one of whose Phi nodes carries mass, in increasing order (those nodes
+      // are among the ones the layer's particles reach).
+      std::vector<int>& carried = w.carried_multipliers;
+      carried.clear();
+      for (const int n : w.scatter_nodes) {
+        const int mu = w.multiplier_of_node[static_cast<std::size_t>(n)];
+        if (mu >= 0 && w.mass[n] > coupling_threshold_) carried.push_back(mu);
+      }
+      std::sort(carried.begin(), carried.end());
+      carried.erase(std::unique(carried.begin(), carried.end()), carried.end());
+      for (const int mu : carried) {
         double grid_sum = 0.0, boundary_sum = 0.0;
         for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
           if (grid.mass[it.row()] > coupling_threshold_) grid_sum += it.value();
@@ -941,8 +962,8 @@ template <int D>
 void Solver<D>::layer_remap() {
   layer_scatter(false);
   for (auto& w : dual_) {
-    if (w.enhanced) continue;  // solved with the standard grid in layer_couple(true)
-    for (std::size_t n = 0; n < w.mass.size(); ++n) {
+    if (w.enhanced) continue;              // solved with the standard grid in layer_couple(true)
+    for (const int n : w.scatter_nodes) {  // the others hold nothing (layer_scatter())
       const bool filled = w.mass[n] > mass_threshold_;
       w.velocity[n] = filled ? Vec<D>(w.momentum[n] / w.mass[n]) : Vec<D>::Zero();
       w.centroid[n] = filled ? Vec<D>(w.centroid[n] / w.mass[n]) : w.position[n];

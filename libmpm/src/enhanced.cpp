@@ -59,7 +59,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   // and renumbered after the dependence check.
   std::vector<int>& candidates = e.candidates;
   candidates.clear();
-  for (std::size_t n = 0; n < w.mass.size(); ++n) {
+  for (const int node : w.scatter_nodes) {  // in increasing order; the others have no mass
+    const auto n = static_cast<std::size_t>(node);
     if (w.layer->node_on_interface[static_cast<Eigen::Index>(n)] != 0) continue;
     if (w.mass[n] <= coupling_threshold_) continue;
     e.alpha_col_of[n] = static_cast<int>(candidates.size());

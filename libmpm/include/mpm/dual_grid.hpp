@@ -218,7 +218,9 @@ struct DualWall {
   /// multiplier_first[mu + 1]) (one, its own node, unless the wall's "multiplier_radius"
   /// aggregates them: aggregate_multipliers()).
   std::vector<int> multiplier_first, multiplier_nodes;
-  std::vector<int> active_multipliers;  ///< this step's multipliers that constrain something
+  std::vector<int> multiplier_of_node;   ///< boundary node -> its multiplier, -1 off Phi
+  std::vector<int> carried_multipliers;  ///< this step's with a Phi node that carries mass
+  std::vector<int> active_multipliers;   ///< this step's multipliers that constrain something
   /// Kept rows (compacted: row k is node grid_rows[k] / layer_rows[k]) and rescaled columns, so
   /// the per-step work scales with the interface, not with the whole grid.
   Eigen::SparseMatrix<double> grid_active, boundary_active;
@@ -257,11 +259,14 @@ struct DualWall {
   std::vector<double> solve_work;  ///< ldlt_solve()'s
   double min_cell_size = 0.0;      ///< for the CFL limit
   /// This step's layer particles by boundary node (layer_scatter(), which sums each node's terms
-  /// on its own, in parallel): node n's (particle, stencil slot) pairs are
-  /// scatter_entries[scatter_first[n] .. scatter_first[n + 1]), coded as slot + place in the
-  /// layer list times the slots per cell, in layer-list order; scatter_nodes lists the nodes
-  /// that have any.
+  /// on its own, in parallel): scatter_nodes lists the nodes they reach, in increasing order
+  /// (the only nodes whose arrays hold anything this step), and the (particle, stencil slot)
+  /// pairs of scatter_nodes[j] are scatter_entries[scatter_first[j] .. scatter_first[j + 1]),
+  /// coded as slot + place in the layer list times the slots per cell, in layer-list order.
   std::vector<int> scatter_first, scatter_entries, scatter_nodes;
+  /// Per boundary node: the counting sort's count (zero between sorts) and the node's place in
+  /// scatter_nodes (valid for the nodes listed there).
+  std::vector<int> scatter_count, scatter_slot;
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
   EnhancedState<D> enh;
