@@ -346,6 +346,7 @@ void Solver<D>::locate_in_layers() {
   layer_stencil_.resize(layer_list_.size());
   layer_gradient_.resize(layer_list_.size());
   layer_terms_.resize(layer_list_.size());
+  const bool remaps = scene_.update != UpdateScheme::usl;
   // Each layer particle's boundary-grid basis, and the terms of its scatters that depend
   // neither on the node nor on what the step changes before them (layer_scatter(): its stress
   // and body force are the step's first; its centroid point is where its basis puts it).
@@ -372,8 +373,8 @@ void Solver<D>::locate_in_layers() {
           }
           // The MUSL remap's nodal velocity is that of the particles at their centroid, which
           // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced
-          // keeps the standard grid's C_p and has no use for it).
-          if (!w.enhanced) {
+          // keeps the standard grid's C_p and has no use for it; USL does not remap).
+          if (remaps && !w.enhanced) {
             t.at.setZero();
             for (int k = 0; k < st.count; ++k) t.at += st.N[k] * w.position[st.node[k]];
           }
@@ -392,10 +393,7 @@ void Solver<D>::layer_scatter(bool with_force) {
     for (const int node : w.scatter_nodes) {
       const auto n = static_cast<std::size_t>(node);
       w.momentum[n].setZero();
-      if (!with_force) {
-        if (!w.enhanced) w.centroid[n].setZero();
-        continue;
-      }
+      if (!with_force) continue;  // the centroids were cleared with the rest at the step's start
       w.mass[n] = 0.0;
       w.force[n].setZero();
       w.centroid[n].setZero();
