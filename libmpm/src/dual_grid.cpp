@@ -118,6 +118,77 @@ Eigen::SparseMatrix<double> on_grid(const Grid<D>& grid, const Eigen::SparseMatr
   return out;
 }
 
+// The concave corners and creases of a wall (walls.hpp, constrain_velocity_in_corner): for each
+// Gamma node, the distinct unit normals of its wall facets, kept where two of them are more than
+// a crease angle apart and the wall bends towards the material there (its neighbours along the
+// wall lie, on average, on the material side of the plane through the node normal to it). At a
+// convex corner or edge the node's own normal stays: material there can leave one facet
+// without entering the other.
+template <int D>
+void find_corners(DualWall<D>& w) {
+  w.corner_first.assign(w.wall_nodes.size() + 1, 0);
+  w.corner_normals.clear();
+  w.corner_part.clear();
+  if constexpr (D > 1) {
+    const mpmgeom::BoundaryGrid& layer = *w.layer;
+    std::vector<std::vector<int>> facets_at(w.wall_nodes.size());
+    for (Eigen::Index f = 0; f < layer.wall_facets.rows(); ++f) {
+      for (int k = 0; k < D; ++k) {
+        facets_at[static_cast<std::size_t>(w.wall_index_of_node[layer.wall_facets(f, k)])]
+            .push_back(static_cast<int>(f));
+      }
+    }
+    const auto facet_normal = [&](int f) -> Vec<D> {
+      const Vec<D> a = w.position[layer.wall_facets(f, 0)];
+      const Vec<D> e = w.position[layer.wall_facets(f, 1)] - a;
+      if constexpr (D == 2) {
+        return Vec<D>(-e[1], e[0]).normalized();  // the left side, into the material
+      } else {
+        return e.cross(w.position[layer.wall_facets(f, 2)] - a).normalized();
+      }
+    };
+    constexpr std::size_t kMaxNormals = 8;  // constrain_velocity_in_corner's bound
+    // A corner or crease: two facets more than ~25 degrees apart (libgeom's crease angle).
+    // Below it the facets approximate a smooth wall, whose normal the node's own is (the shipped
+    // hillside: 82 of 10,462 Gamma nodes are past it, all by more than 80 degrees, at the
+    // barrier's foot and ends; the terrain's facets meet within 5 degrees).
+    constexpr double kCornerCosine = 0.9;
+    std::vector<Vec<D>> distinct;
+    std::vector<int> parts;
+    for (std::size_t i = 0; i < w.wall_nodes.size(); ++i) {
+      const int node = w.wall_nodes[i];
+      distinct.clear();
+      parts.clear();
+      double bend = 0.0;
+      for (const int f : facets_at[i]) {
+        const Vec<D> nf = facet_normal(f);
+        // Facets in one plane (to round-off) give one constraint.
+        const bool seen = std::any_of(distinct.begin(), distinct.end(),
+                                      [&](const Vec<D>& m) { return m.dot(nf) > 1.0 - 1e-9; });
+        if (!seen) {
+          distinct.push_back(nf);
+          parts.push_back(layer.wall_facet_part[f]);
+        }
+        for (int k = 0; k < D; ++k) {
+          const int other = layer.wall_facets(f, k);
+          if (other == node) continue;
+          const Vec<D> d = w.position[other] - w.position[node];
+          bend += w.wall_normal[i].dot(d) / d.norm();
+        }
+      }
+      double spread = 1.0;  // the cosine of the widest angle between two of the facets
+      for (const Vec<D>& a : distinct) {
+        for (const Vec<D>& b : distinct) spread = std::min(spread, a.dot(b));
+      }
+      if (spread < kCornerCosine && distinct.size() <= kMaxNormals && bend > 0.0) {
+        w.corner_normals.insert(w.corner_normals.end(), distinct.begin(), distinct.end());
+        w.corner_part.insert(w.corner_part.end(), parts.begin(), parts.end());
+      }
+      w.corner_first[i + 1] = static_cast<int>(w.corner_normals.size());
+    }
+  }
+}
+
 }  // namespace
 
 template <int D>
@@ -133,6 +204,9 @@ std::vector<CouplingWork> Solver<D>::coupling_work() const {
         w.enhanced ? w.spec->package->wall_coupling : w.spec->package->interface_coupling;
     c.surface_nodes = surface.multiplier_node.size();
     c.multipliers = w.enhanced ? c.surface_nodes : w.multiplier_first.size() - 1;
+    for (std::size_t i = 0; i < w.wall_nodes.size(); ++i) {
+      if (!w.enhanced && w.corner_first[i + 1] > w.corner_first[i]) ++c.corner_nodes;
+    }
     c.factorizations = w.factorizations + w.enh.factorizations;
     c.refinement_passes = w.refinements + w.enh.refinements;
     work.push_back(std::move(c));
@@ -209,6 +283,11 @@ void Solver<D>::setup_dual_walls() {
       w.wall_normal.push_back(
           w.layer->node_normals.row(static_cast<Eigen::Index>(i)).transpose().normalized());
       w.wall_node_part.push_back(part[i]);
+    }
+    if (spec.corner_facets) {
+      find_corners(w);
+    } else {
+      w.corner_first.assign(w.wall_nodes.size() + 1, 0);
     }
     w.impulse_offset = static_cast<int>(wall_impulse_.size());
     wall_impulse_.resize(
@@ -488,9 +567,15 @@ void Solver<D>::layer_scatter(bool with_force) {
               w.force[n] += t.vs * st.dN[k] + N * t.mb;
               if (touch && wi >= 0) {
                 const Vec<D> d = P.position[p] - at_node;
-                const double normal = d.dot(w.wall_normal[static_cast<std::size_t>(wi)]);
-                if ((d - normal * w.wall_normal[static_cast<std::size_t>(wi)]).norm() <= t.window) {
-                  w.touch_gap[n] = std::min(w.touch_gap[n], normal - t.reach);
+                // At a concave corner the particle may lie over any of the node's facets.
+                const auto wu = static_cast<std::size_t>(wi);
+                const int c0 = w.corner_first[wu], c1 = w.corner_first[wu + 1];
+                const Vec<D>* normals = c1 > c0 ? &w.corner_normals[c0] : &w.wall_normal[wu];
+                for (int c = 0; c < std::max(1, c1 - c0); ++c) {
+                  const double normal = d.dot(normals[c]);
+                  if ((d - normal * normals[c]).norm() <= t.window) {
+                    w.touch_gap[n] = std::min(w.touch_gap[n], normal - t.reach);
+                  }
                 }
               }
             }
@@ -539,13 +624,42 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
       if (!held_by_wall(w, n, mass_threshold_)) continue;
       const int part = w.wall_node_part[i];
       const Vec<D> before = v[n];
+      const int c0 = w.corner_first[i], c1 = w.corner_first[i + 1];
+      std::array<double, 8> lambda{};  // find_corners() keeps at most 8 normals
       v[n] = std::visit(
           [&](const auto& condition) {
+            if constexpr (D > 1) {  // a 1D wall is a point: one normal
+              if (c1 > c0) {
+                return constrain_velocity_in_corner<D>(condition, w.spec->contact.separable,
+                                                       &w.corner_normals[c0], c1 - c0, before,
+                                                       lambda.data());
+              }
+            }
             return constrain_velocity<D>(condition, w.spec->contact.separable, w.wall_normal[i],
                                          before);
           },
           w.spec->condition(part));
-      if (record) wall_impulse_[w.impulse_offset + part] += pad3<D>(w.mass[n] * (v[n] - before));
+      if (!record) continue;
+      const Vec<D> change = v[n] - before;
+      if (c1 == c0) {
+        wall_impulse_[w.impulse_offset + part] += pad3<D>(w.mass[n] * change);
+        continue;
+      }
+      // A corner shares its force among its facets' parts (a barrier's foot on the terrain):
+      // each takes its facet's normal push and friction in proportion to it.
+      Vec<D> normal = Vec<D>::Zero();
+      double total = 0.0;
+      for (int c = c0; c < c1; ++c) {
+        normal += lambda[c - c0] * w.corner_normals[c];
+        total += std::abs(lambda[c - c0]);
+      }
+      const Vec<D> friction = change - normal;
+      for (int c = c0; c < c1; ++c) {
+        const double l = lambda[c - c0];
+        const double share = total > 0.0 ? std::abs(l) / total : 1.0 / (c1 - c0);
+        wall_impulse_[w.impulse_offset + w.corner_part[c]] +=
+            pad3<D>(w.mass[n] * (l * w.corner_normals[c] + share * friction));
+      }
     }
   }
 }

@@ -693,6 +693,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
     summary["coupling"][c.wall] = {{"method", c.method},
                                    {"surface_nodes", c.surface_nodes},
                                    {"multipliers", c.multipliers},
+                                   {"corner_nodes", c.corner_nodes},
                                    {"factorizations", c.factorizations},
                                    {"refinement_passes", c.refinement_passes}};
   }

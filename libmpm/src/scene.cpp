@@ -477,6 +477,12 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
     }
     wall.multiplier_radius = r.in_range("multiplier_radius", 0.0, 8.0, false);
   }
+  if (r.has("corners")) {
+    if (wall.method != CouplingMethod::mortar && wall.method != CouplingMethod::one_way) {
+      r.fail_at(r.child("corners"), "only used by Blending walls (method mortar or one-way)");
+    }
+    wall.corner_facets = r.choice("corners", {"normal", "facets"}) == "facets";
+  }
   const mpmgeom::GridSpec grid =
       standard_grid_spec(dim, scene.box_min, scene.box_max, scene.spacing, scene.shape);
 

@@ -1071,5 +1071,80 @@ INSTANTIATE_TEST_SUITE_P(MethodAndSeparation, RestingBlock,
                                   (std::get<1>(p.param) ? "Separable" : "Bonded");
                          });
 
+// A granular stream at 4 m/s along a rough floor into the foot of a wall, floor and wall one
+// polyline (the concave corner of a barrier on the ground). The Gamma node at the foot has two
+// facets; with only its own normal (their bisector) acting, the wall's default ("corners":
+// "normal"), the stream's front particle slides along the bisector's tangent into the wall and
+// leaves through the corner (here 4.05 h behind the wall by 0.4 s; the run faults at step ~5000
+// at 3 m/s, ~7500 at 4 m/s, in the impact study of docs/validation.md). Mortar runs with
+// "corners": "facets" (the foot held against both); Enhanced holds Gamma through its contact
+// multipliers and needs no option. Checked every step: no particle
+// centre behind the floor or the wall by more than kBehindTolerance h, the mass kept, and
+// (mortar) the horizontal momentum changed only by the wall's impulse (gravity is vertical; the
+// coupling's impulses across Phi cancel).
+class CornerImpact : public ::testing::TestWithParam<const char*> {};
+
+TEST_P(CornerImpact, NothingLeavesThroughTheFootOfAWall) {
+  const std::string method = GetParam();
+  constexpr double h = 0.0125, wall_x = 0.6, v0 = 4.0;
+  json wall = contact_json(0.4);
+  wall["name"] = "barrier";
+  set_method(wall, method);
+  if (method == "mortar") wall["corners"] = "facets";
+  wall["surface"] = {{"type", "polyline"}, {"points", {{0.0, 0.0}, {wall_x, 0.0}, {wall_x, 1.2}}}};
+  const json doc = {
+      {"name", "corner_impact"},
+      {"dimension", 2},
+      {"grid", {{"min", {-4 * h, -4 * h}}, {"max", {wall_x + 4 * h, 1.25}}, {"spacing", h}}},
+      {"shape_function", "bspline2"},
+      {"scheme", {{"update", "musl"}, {"transfer", "apic"}}},
+      {"gravity", {0.0, -kGravity}},
+      {"materials",
+       {{{"name", "debris"},
+         {"model", "drucker_prager"},
+         {"density", 1800.0},
+         {"youngs_modulus", 5.0e6},
+         {"poisson_ratio", 0.3},
+         {"friction_angle", 30.0},
+         {"dilatancy_angle", 0.0},
+         {"cohesion", 0.0}}}},
+      {"bodies",
+       {{{"name", "flow"},
+         {"material", "debris"},
+         {"particles_per_cell", 2},
+         {"velocity", {v0, 0.0}},
+         {"shape", {{"type", "box"}, {"min", {0.1, 0.0}}, {"max", {wall_x - 0.05, 0.1}}}}}}},
+      {"walls", {wall}},
+      {"time", {{"end", 0.4}, {"cfl", 0.5}}}};
+  const Scene scene = parse_scene(doc, "<corner impact>");
+  Solver<2> s(scene);
+  const double mass = total_mass(s);
+  const double px0 = s.momentum()[0];
+  double impulse_x = 0.0, behind = -std::numeric_limits<double>::infinity(), balance = 0.0;
+  std::size_t steps = 0;
+  run_until(s, scene, scene.end_time, [&](double, double) {
+    for (const auto& x : s.particles.position) behind = std::max({behind, -x[1], x[0] - wall_x});
+    for (const auto& impulse : s.wall_impulses()) impulse_x += impulse[0];
+    s.reset_wall_impulses();
+    balance = std::max(balance, std::abs(s.momentum()[0] - px0 - impulse_x) / (mass * v0));
+    ++steps;
+  });
+  std::printf(
+      "%s: %zu steps, deepest particle centre %.3e h behind the floor or the wall, "
+      "x-momentum balance %.2e of m v0\n",
+      method.c_str(), steps, behind / h, balance);
+  EXPECT_LE(behind, kBehindTolerance * h);
+  EXPECT_EQ(total_mass(s), mass);
+  // Mortar's impulses across Phi cancel to round-off (its free flight: 1e-10), so the wall's
+  // recorded impulse is the whole change. Enhanced is checked for the leak only: its recorded
+  // wall impulse and the momentum change differ by ~1e-5 of m v0 in this run (not analysed).
+  if (method == "mortar") {
+    EXPECT_LT(balance, 1e-9);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(Methods, CornerImpact, ::testing::Values("mortar", "enhanced"),
+                         [](const auto& p) { return std::string(p.param); });
+
 }  // namespace
 }  // namespace mpm

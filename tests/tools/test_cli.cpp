@@ -358,6 +358,18 @@ TEST_F(CommandLine, RejectsMultiplierRadiusOutOfRangeOrOnEnhancedWall) {
   expect_rejected("/walls/0/multiplier_radius", {"mortar or one-way"});
 }
 
+TEST_F(CommandLine, RejectsUnknownCornerRuleOrOnEnhancedWall) {
+  // A misspelt rule would silently leave the default; Enhanced holds Gamma by its multipliers.
+  json scene = scene_2d_dual_floor();
+  scene["walls"][0]["corners"] = "facet";
+  write_scene(scene);
+  expect_rejected("/walls/0/corners", {"normal, facets", "facet"});
+  scene["walls"][0]["corners"] = "facets";
+  scene["walls"][0]["method"] = "enhanced";
+  write_scene(scene);
+  expect_rejected("/walls/0/corners", {"mortar or one-way"});
+}
+
 TEST_F(CommandLine, RejectsConditionForUnknownPart) {
   // A misspelt part would leave the part it meant with the wall's friction.
   json scene = scene_2d_dual_floor();

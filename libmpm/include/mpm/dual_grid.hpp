@@ -199,6 +199,13 @@ struct DualWall {
   std::vector<int> wall_index_of_node;  ///< boundary node -> index in wall_nodes, -1 off Gamma
   std::vector<Vec<D>> wall_normal;
   std::vector<int> wall_node_part;
+  /// Gamma nodes where wall facets meet at a concave corner or crease (the wall bends towards
+  /// the material): corner_normals[corner_first[i] .. corner_first[i + 1]) are the distinct unit
+  /// normals of the facets at wall node i, and the node may enter none of them (its own normal,
+  /// their average, would let it slide into one). Empty for every other node.
+  std::vector<int> corner_first;
+  std::vector<Vec<D>> corner_normals;
+  std::vector<int> corner_part;  ///< the part of the (first) facet with each corner normal
   /// Per boundary node (Gamma nodes only): min over the layer particles lying over its share of
   /// the facet of the distance of the particle's near edge from the wall along the node's
   /// normal, less the touch tolerance; the node is in contact only when it is <= 0 (separable

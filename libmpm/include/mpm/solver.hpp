@@ -61,6 +61,8 @@ struct CouplingWork {
   std::string method;
   std::size_t surface_nodes = 0;  ///< multiplier nodes of the surface (Phi or Gamma)
   std::size_t multipliers = 0;    ///< after merging ("multiplier_radius"; Blending only)
+  /// Gamma nodes at concave corners and creases, held against each of their facets (Blending)
+  std::size_t corner_nodes = 0;
   std::size_t factorizations = 0;
   std::size_t refinement_passes = 0;
 };

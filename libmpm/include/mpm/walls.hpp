@@ -2,7 +2,10 @@
 // Wall conditions: a closed set applied to grid-node velocities in the wall's own frame
 // (normal n pointing from the wall into the material).
 
+#include <Eigen/Cholesky>
+#include <Eigen/QR>
 #include <algorithm>
+#include <bit>
 #include <string>
 #include <variant>
 
@@ -56,6 +59,97 @@ Vec<D> constrain_velocity(const Condition& condition, bool separable, const Vec<
       if (speed <= 0.0) return vt;
       return vt * std::max(0.0, 1.0 - condition.mu * std::abs(vn) / speed);
     }
+  }
+}
+
+/// The velocity nearest to v (Euclidean: a node has one mass) that enters none of the given
+/// planes: n_i . u >= 0 for each unit normal n_i of the wall facets meeting at a concave corner
+/// or crease. The projection onto that polyhedral cone is the u = v + sum_A l_i n_i with
+/// l_i >= 0 and n_i . u = 0 on an active set A that leaves every other n_j . u >= 0; at most D
+/// planes are active, and the count is small (the facets' distinct normals), so the active sets
+/// are tried smallest first. Zero (the corner itself) if none fits, as where the normals span
+/// no cone with an interior. lambda (count entries, if given) receives each l_i (0 off A).
+template <int D>
+requires(D > 1) Vec<D> project_to_cone(const Vec<D>* n, int count, const Vec<D>& v,
+                                       double* lambda = nullptr) {
+  if (lambda) std::fill(lambda, lambda + count, 0.0);
+  const double tol = 1e-12 * v.norm();
+  const auto feasible = [&](const Vec<D>& u) {
+    for (int j = 0; j < count; ++j) {
+      if (n[j].dot(u) < -tol) return false;
+    }
+    return true;
+  };
+  if (feasible(v)) return v;
+  const unsigned subsets = 1u << count;
+  for (int size = 1; size <= std::min(D, count); ++size) {
+    for (unsigned mask = 1; mask < subsets; ++mask) {
+      if (std::popcount(mask) != size) continue;
+      Eigen::Matrix<double, D, Eigen::Dynamic, 0, D, D> active(D, size);
+      int k = 0;
+      for (int i = 0; i < count; ++i) {
+        if (mask & (1u << i)) active.col(k++) = n[i];
+      }
+      const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, D, D> gram =
+          active.transpose() * active;
+      const Eigen::LDLT<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, D, D>> ldlt(gram);
+      // Dependent normals: a smaller active set spans the same planes.
+      if (ldlt.info() != Eigen::Success || ldlt.vectorD().minCoeff() <= 1e-12) continue;
+      const Eigen::Matrix<double, Eigen::Dynamic, 1, 0, D, 1> l =
+          ldlt.solve(-(active.transpose() * v));
+      if (l.minCoeff() < 0.0) continue;
+      const Vec<D> u = v + active * l;
+      if (!feasible(u)) continue;
+      if (lambda) {
+        k = 0;
+        for (int i = 0; i < count; ++i) {
+          if (mask & (1u << i)) lambda[i] = l[k++];
+        }
+      }
+      return u;
+    }
+  }
+  return Vec<D>::Zero();
+}
+
+/// constrain_velocity() at a node where wall facets meet at a concave corner or crease, with
+/// the facets' distinct unit normals n[0 .. count): the node may move along none of them into
+/// the wall. Separable: free while v enters none; otherwise v is projected onto the cone of
+/// velocities that enter none (slip), with Coulomb friction taking at most mu times that
+/// projection's impulse from the sliding speed, or stopped (sticky). Bonded: the node slides
+/// only along every facet at once (in 2D, and in 3D where three facets meet, it is held).
+/// With one normal this is constrain_velocity(). lambda (count entries, if given) receives the
+/// normal change of velocity each facet makes, l_i along n_i (the change less their sum is
+/// friction's), so that a force can be shared among the facets' parts.
+template <int D, class Condition>
+requires(D > 1) Vec<D> constrain_velocity_in_corner(const Condition& condition, bool separable,
+                                                    const Vec<D>* n, int count, const Vec<D>& v,
+                                                    double* lambda = nullptr) {
+  Vec<D> u;
+  if (separable) {
+    u = project_to_cone<D>(n, count, v, lambda);
+    if (u == v) return v;  // enters no facet: no contact force
+  } else {
+    // The part of v in no facet's normal direction (orthogonal to their span).
+    Eigen::Matrix<double, D, Eigen::Dynamic, 0, D, 8> normals(D, count);
+    for (int i = 0; i < count; ++i) normals.col(i) = n[i];
+    const Eigen::ColPivHouseholderQR<decltype(normals)> qr(normals);
+    const auto q = qr.householderQ() * Mat<D>::Identity();
+    u = v;
+    for (Eigen::Index r = 0; r < qr.rank(); ++r) u -= q.col(r).dot(v) * q.col(r);
+    if (lambda) {
+      const Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 8, 1> l = qr.solve(u - v);
+      std::copy(l.data(), l.data() + count, lambda);
+    }
+  }
+  if constexpr (std::is_same_v<Condition, Sticky>) {
+    return Vec<D>::Zero();
+  } else if constexpr (std::is_same_v<Condition, Slip>) {
+    return u;
+  } else {
+    const double speed = u.norm();
+    if (speed <= 0.0) return u;
+    return u * std::max(0.0, 1.0 - condition.mu * (u - v).norm() / speed);
   }
 }
 

@@ -1,0 +1,154 @@
+// Wall conditions on a node's velocity (walls.hpp) against exact answers: at a concave corner or
+// crease the node may enter none of its facets, and the velocity is the nearest one that does
+// not (Euclidean projection onto the cone of the facets' normals), with Coulomb friction taking
+// at most mu times that projection's impulse from the sliding speed.
+
+#include <gtest/gtest.h>
+
+#include <array>
+#include <cmath>
+#include <numbers>
+#include <random>
+#include <vector>
+
+#include "mpm/walls.hpp"
+
+namespace mpm {
+namespace {
+
+constexpr double kTol = 1e-14;
+
+template <int D>
+Vec<D> corner(const std::vector<Vec<D>>& n, const Vec<D>& v, bool separable = true,
+              const WallCondition& condition = Slip{}) {
+  return std::visit(
+      [&](const auto& c) {
+        return constrain_velocity_in_corner<D>(c, separable, n.data(), static_cast<int>(n.size()),
+                                               v);
+      },
+      condition);
+}
+
+// The foot of a wall on a floor (2D): floor normal +y, wall normal -x (material on the left of
+// the floor and in front of the wall).
+const std::vector<Vec<2>> kFoot = {Vec<2>(0.0, 1.0), Vec<2>(-1.0, 0.0)};
+
+TEST(CornerCondition, FlowIntoTheFootOfAWallStops) {
+  // Along the floor into the wall: the floor allows it, the wall does not; the nearest velocity
+  // entering neither is rest (the node's own normal, the bisector, would keep (1, 1) / 2 * 2,
+  // into the wall: the leak this condition closes).
+  EXPECT_LT((corner<2>(kFoot, Vec<2>(2.0, 0.0)) - Vec<2>::Zero()).norm(), kTol);
+  // Rising: the wall takes the normal part only.
+  EXPECT_LT((corner<2>(kFoot, Vec<2>(2.0, 1.0)) - Vec<2>(0.0, 1.0)).norm(), kTol);
+  // Into both: rest.
+  EXPECT_LT(corner<2>(kFoot, Vec<2>(2.0, -1.0)).norm(), kTol);
+  // Down along the wall into the floor: the floor takes it.
+  EXPECT_LT((corner<2>(kFoot, Vec<2>(-0.5, -3.0)) - Vec<2>(-0.5, 0.0)).norm(), kTol);
+}
+
+TEST(CornerCondition, SeparableLeavesMotionAwayFromBothFacetsAlone) {
+  const Vec<2> away(-1.0, 2.0);
+  EXPECT_EQ(corner<2>(kFoot, away), away);
+  EXPECT_EQ(corner<2>(kFoot, away, true, Sticky{}), away);
+  EXPECT_EQ(corner<2>(kFoot, away, true, Friction{0.5}), away);
+  // Bonded: the node slides along neither facet of a 2D corner.
+  EXPECT_LT(corner<2>(kFoot, away, false).norm(), kTol);
+}
+
+TEST(CornerCondition, ObtuseCornerProjectsOntoTheFacetItEnters) {
+  // Floor +y and a 45 degree ramp rising from it (normal (-1, 1) / sqrt 2): sliding along the
+  // floor at 1 enters only the ramp, and leaves along the ramp at (1/2, 1/2).
+  const std::vector<Vec<2>> ramp = {Vec<2>(0.0, 1.0),
+                                    Vec<2>(-1.0, 1.0) / std::numbers::sqrt2};
+  EXPECT_LT((corner<2>(ramp, Vec<2>(1.0, 0.0)) - Vec<2>(0.5, 0.5)).norm(), kTol);
+  // Coulomb: the impulse removed is |(1/2, -1/2)| = 1/sqrt 2; mu = 0.5 takes 0.5 / sqrt 2 of the
+  // remaining speed 1 / sqrt 2, half of it.
+  EXPECT_LT((corner<2>(ramp, Vec<2>(1.0, 0.0), true, Friction{0.5}) - Vec<2>(0.25, 0.25)).norm(),
+            kTol);
+}
+
+TEST(CornerCondition, FrictionTakesAtMostMuTimesTheNormalImpulse) {
+  // (2, 3) into the foot: the wall removes 2 (normal), leaving (0, 3) sliding up the wall;
+  // mu = 0.5 takes 1 of it. mu = 2 would take 4: the node stops.
+  EXPECT_LT((corner<2>(kFoot, Vec<2>(2.0, 3.0), true, Friction{0.5}) - Vec<2>(0.0, 2.0)).norm(),
+            kTol);
+  EXPECT_LT(corner<2>(kFoot, Vec<2>(2.0, 3.0), true, Friction{2.0}).norm(), kTol);
+  EXPECT_LT(corner<2>(kFoot, Vec<2>(2.0, 3.0), true, Sticky{}).norm(), kTol);
+}
+
+TEST(CornerCondition, ReportsEachFacetsNormalPush) {
+  // Into both facets of the foot at (2, -1): the floor pushes up by 1, the wall back by 2. With
+  // friction the change less those pushes is the friction's (here none: the node stops).
+  std::array<double, 2> l{};
+  const Vec<2> u = constrain_velocity_in_corner<2>(Friction{0.4}, true, kFoot.data(), 2,
+                                                   Vec<2>(2.0, -1.0), l.data());
+  EXPECT_LT(u.norm(), kTol);
+  EXPECT_NEAR(l[0], 1.0, kTol);
+  EXPECT_NEAR(l[1], 2.0, kTol);
+  // Rising into the wall: the wall alone pushes; friction takes 0.4 * 2 of the sliding 3.
+  const Vec<2> r = constrain_velocity_in_corner<2>(Friction{0.4}, true, kFoot.data(), 2,
+                                                   Vec<2>(2.0, 3.0), l.data());
+  EXPECT_NEAR(l[0], 0.0, kTol);
+  EXPECT_NEAR(l[1], 2.0, kTol);
+  EXPECT_LT((r - Vec<2>(0.0, 2.2)).norm(), kTol);
+  // Bonded: the pushes that hold the node, whatever their sign.
+  constrain_velocity_in_corner<2>(Slip{}, false, kFoot.data(), 2, Vec<2>(-1.0, 2.0), l.data());
+  EXPECT_NEAR(l[0], -2.0, kTol);
+  EXPECT_NEAR(l[1], -1.0, kTol);
+}
+
+TEST(CornerCondition, CreaseIn3DSlidesAlongItsLine) {
+  // Terrain +z meeting a barrier with normal -x: the crease runs along y.
+  const std::vector<Vec<3>> crease = {Vec<3>(0.0, 0.0, 1.0), Vec<3>(-1.0, 0.0, 0.0)};
+  EXPECT_LT((corner<3>(crease, Vec<3>(2.0, 1.5, -1.0)) - Vec<3>(0.0, 1.5, 0.0)).norm(), kTol);
+  EXPECT_LT((corner<3>(crease, Vec<3>(2.0, 1.5, 1.0)) - Vec<3>(0.0, 1.5, 1.0)).norm(), kTol);
+  EXPECT_LT((corner<3>(crease, Vec<3>(2.0, 1.5, 1.0), false) - Vec<3>(0.0, 1.5, 0.0)).norm(),
+            kTol);
+  // A box corner: three facets, the node held.
+  const std::vector<Vec<3>> box = {Vec<3>(1.0, 0.0, 0.0), Vec<3>(0.0, 1.0, 0.0),
+                                   Vec<3>(0.0, 0.0, 1.0)};
+  EXPECT_LT((corner<3>(box, Vec<3>(-1.0, -2.0, 3.0)) - Vec<3>(0.0, 0.0, 3.0)).norm(), kTol);
+  EXPECT_LT(corner<3>(box, Vec<3>(-1.0, -2.0, -3.0)).norm(), kTol);
+}
+
+// Against the definition: the result enters no facet, and no velocity that enters none is closer
+// to v (checked on a fine sample of the cone's boundary and interior); with one normal it is
+// constrain_velocity().
+TEST(CornerCondition, IsTheNearestVelocityEnteringNoFacet) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (int trial = 0; trial < 200; ++trial) {
+    // Three facet normals within 60 degrees of +z (a concave corner's cone has an interior).
+    std::vector<Vec<3>> n;
+    for (int i = 0; i < 3; ++i) {
+      n.push_back(Vec<3>(0.8 * u(rng), 0.8 * u(rng), 1.0).normalized());
+    }
+    const Vec<3> v(u(rng), u(rng), u(rng));
+    const Vec<3> p = corner<3>(n, v);
+    for (const auto& ni : n) EXPECT_GE(ni.dot(p), -1e-12);
+    double best = std::numeric_limits<double>::infinity();
+    for (int s = 0; s < 20000; ++s) {
+      const Vec<3> q = 2.0 * Vec<3>(u(rng), u(rng), u(rng));
+      bool inside = true;
+      for (const auto& ni : n) inside = inside && ni.dot(q) >= 0.0;
+      if (inside) best = std::min(best, (q - v).norm());
+    }
+    EXPECT_LE((p - v).norm(), best + 1e-12);
+  }
+  for (int trial = 0; trial < 100; ++trial) {
+    const std::vector<Vec<2>> one = {Vec<2>(u(rng), u(rng)).normalized()};
+    const Vec<2> v(u(rng), u(rng));
+    for (const WallCondition& c : {WallCondition(Slip{}), WallCondition(Friction{0.3})}) {
+      for (const bool separable : {true, false}) {
+        const Vec<2> a = corner<2>(one, v, separable, c);
+        const Vec<2> b = std::visit(
+            [&](const auto& cond) { return constrain_velocity<2>(cond, separable, one[0], v); },
+            c);
+        EXPECT_LT((a - b).norm(), 1e-14);
+      }
+    }
+  }
+}
+
+}  // namespace
+}  // namespace mpm
