@@ -129,6 +129,7 @@ void find_corners(DualWall<D>& w) {
   w.corner_first.assign(w.wall_nodes.size() + 1, 0);
   w.corner_normals.clear();
   w.corner_part.clear();
+  w.corner_gap.clear();
   if constexpr (D > 1) {
     const mpmgeom::BoundaryGrid& layer = *w.layer;
     std::vector<std::vector<int>> facets_at(w.wall_nodes.size());
@@ -183,6 +184,7 @@ void find_corners(DualWall<D>& w) {
       if (spread < kCornerCosine && distinct.size() <= kMaxNormals && bend > 0.0) {
         w.corner_normals.insert(w.corner_normals.end(), distinct.begin(), distinct.end());
         w.corner_part.insert(w.corner_part.end(), parts.begin(), parts.end());
+        w.corner_gap.resize(w.corner_normals.size(), std::numeric_limits<double>::infinity());
       }
       w.corner_first[i + 1] = static_cast<int>(w.corner_normals.size());
     }
@@ -480,6 +482,12 @@ void Solver<D>::layer_scatter(bool with_force) {
       w.velocity_new[n].setZero();
       if (w.enhanced) w.momentum_new[n].setZero();
       w.touch_gap[n] = std::numeric_limits<double>::infinity();
+      if (const int wi = w.wall_index_of_node[n]; wi >= 0) {
+        const auto wu = static_cast<std::size_t>(wi);
+        std::fill(w.corner_gap.begin() + w.corner_first[wu],
+                  w.corner_gap.begin() + w.corner_first[wu + 1],
+                  std::numeric_limits<double>::infinity());
+      }
     }
   }
   if (dual_.empty()) return;
@@ -574,7 +582,9 @@ void Solver<D>::layer_scatter(bool with_force) {
                 for (int c = 0; c < std::max(1, c1 - c0); ++c) {
                   const double normal = d.dot(normals[c]);
                   if ((d - normal * normals[c]).norm() <= t.window) {
-                    w.touch_gap[n] = std::min(w.touch_gap[n], normal - t.reach);
+                    const double gap = normal - t.reach;
+                    w.touch_gap[n] = std::min(w.touch_gap[n], gap);
+                    if (c1 > c0) w.corner_gap[c0 + c] = std::min(w.corner_gap[c0 + c], gap);
                   }
                 }
               }
@@ -625,13 +635,23 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
       const int part = w.wall_node_part[i];
       const Vec<D> before = v[n];
       const int c0 = w.corner_first[i], c1 = w.corner_first[i + 1];
-      std::array<double, 8> lambda{};  // find_corners() keeps at most 8 normals
+      // A separable corner holds the node against the facets its material touches (a foot
+      // node lets the flow on the terrain slide on until it reaches the barrier).
+      std::array<Vec<D>, 8> normals;  // find_corners() keeps at most 8
+      std::array<int, 8> facet;
+      int count = 0;
+      for (int c = c0; c < c1; ++c) {
+        if (w.spec->contact.separable && w.corner_gap[c] > 0.0) continue;
+        normals[count] = w.corner_normals[c];
+        facet[count++] = c;
+      }
+      std::array<double, 8> lambda{};
       v[n] = std::visit(
           [&](const auto& condition) {
             if constexpr (D > 1) {  // a 1D wall is a point: one normal
               if (c1 > c0) {
                 return constrain_velocity_in_corner<D>(condition, w.spec->contact.separable,
-                                                       &w.corner_normals[c0], c1 - c0, before,
+                                                       normals.data(), count, before,
                                                        lambda.data());
               }
             }
@@ -649,16 +669,15 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
       // each takes its facet's normal push and friction in proportion to it.
       Vec<D> normal = Vec<D>::Zero();
       double total = 0.0;
-      for (int c = c0; c < c1; ++c) {
-        normal += lambda[c - c0] * w.corner_normals[c];
-        total += std::abs(lambda[c - c0]);
+      for (int c = 0; c < count; ++c) {
+        normal += lambda[c] * normals[c];
+        total += std::abs(lambda[c]);
       }
       const Vec<D> friction = change - normal;
-      for (int c = c0; c < c1; ++c) {
-        const double l = lambda[c - c0];
-        const double share = total > 0.0 ? std::abs(l) / total : 1.0 / (c1 - c0);
-        wall_impulse_[w.impulse_offset + w.corner_part[c]] +=
-            pad3<D>(w.mass[n] * (l * w.corner_normals[c] + share * friction));
+      for (int c = 0; c < count; ++c) {
+        const double share = total > 0.0 ? std::abs(lambda[c]) / total : 1.0 / count;
+        wall_impulse_[w.impulse_offset + w.corner_part[facet[c]]] +=
+            pad3<D>(w.mass[n] * (lambda[c] * normals[c] + share * friction));
       }
     }
   }

@@ -58,8 +58,7 @@ TEST(CornerCondition, SeparableLeavesMotionAwayFromBothFacetsAlone) {
 TEST(CornerCondition, ObtuseCornerProjectsOntoTheFacetItEnters) {
   // Floor +y and a 45 degree ramp rising from it (normal (-1, 1) / sqrt 2): sliding along the
   // floor at 1 enters only the ramp, and leaves along the ramp at (1/2, 1/2).
-  const std::vector<Vec<2>> ramp = {Vec<2>(0.0, 1.0),
-                                    Vec<2>(-1.0, 1.0) / std::numbers::sqrt2};
+  const std::vector<Vec<2>> ramp = {Vec<2>(0.0, 1.0), Vec<2>(-1.0, 1.0) / std::numbers::sqrt2};
   EXPECT_LT((corner<2>(ramp, Vec<2>(1.0, 0.0)) - Vec<2>(0.5, 0.5)).norm(), kTol);
   // Coulomb: the impulse removed is |(1/2, -1/2)| = 1/sqrt 2; mu = 0.5 takes 0.5 / sqrt 2 of the
   // remaining speed 1 / sqrt 2, half of it.
@@ -102,8 +101,7 @@ TEST(CornerCondition, CreaseIn3DSlidesAlongItsLine) {
   const std::vector<Vec<3>> crease = {Vec<3>(0.0, 0.0, 1.0), Vec<3>(-1.0, 0.0, 0.0)};
   EXPECT_LT((corner<3>(crease, Vec<3>(2.0, 1.5, -1.0)) - Vec<3>(0.0, 1.5, 0.0)).norm(), kTol);
   EXPECT_LT((corner<3>(crease, Vec<3>(2.0, 1.5, 1.0)) - Vec<3>(0.0, 1.5, 1.0)).norm(), kTol);
-  EXPECT_LT((corner<3>(crease, Vec<3>(2.0, 1.5, 1.0), false) - Vec<3>(0.0, 1.5, 0.0)).norm(),
-            kTol);
+  EXPECT_LT((corner<3>(crease, Vec<3>(2.0, 1.5, 1.0), false) - Vec<3>(0.0, 1.5, 0.0)).norm(), kTol);
   // A box corner: three facets, the node held.
   const std::vector<Vec<3>> box = {Vec<3>(1.0, 0.0, 0.0), Vec<3>(0.0, 1.0, 0.0),
                                    Vec<3>(0.0, 0.0, 1.0)};
@@ -142,8 +140,7 @@ TEST(CornerCondition, IsTheNearestVelocityEnteringNoFacet) {
       for (const bool separable : {true, false}) {
         const Vec<2> a = corner<2>(one, v, separable, c);
         const Vec<2> b = std::visit(
-            [&](const auto& cond) { return constrain_velocity<2>(cond, separable, one[0], v); },
-            c);
+            [&](const auto& cond) { return constrain_velocity<2>(cond, separable, one[0], v); }, c);
         EXPECT_LT((a - b).norm(), 1e-14);
       }
     }

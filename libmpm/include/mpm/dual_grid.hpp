@@ -206,6 +206,8 @@ struct DualWall {
   std::vector<int> corner_first;
   std::vector<Vec<D>> corner_normals;
   std::vector<int> corner_part;  ///< the part of the (first) facet with each corner normal
+  /// Per corner normal, as touch_gap per node: the material's gap to that facet near the node.
+  std::vector<double> corner_gap;
   /// Per boundary node (Gamma nodes only): min over the layer particles lying over its share of
   /// the facet of the distance of the particle's near edge from the wall along the node's
   /// normal, less the touch tolerance; the node is in contact only when it is <= 0 (separable
