@@ -123,13 +123,13 @@ Eigen::SparseMatrix<double> on_grid(const Grid<D>& grid, const Eigen::SparseMatr
 // a crease angle apart and the wall bends towards the material there (its neighbours along the
 // wall lie, on average, on the material side of the plane through the node normal to it). At a
 // convex corner or edge the node's own normal stays: material there can leave one facet
-// without entering the other.
+// without entering the other. None unless the wall asks for them ("corners": "facets").
 template <int D>
 void find_corners(DualWall<D>& w) {
   w.corner_first.assign(w.wall_nodes.size() + 1, 0);
   w.corner_normals.clear();
   w.corner_part.clear();
-  w.corner_gap.clear();
+  if (!w.spec->corner_facets) return;
   if constexpr (D > 1) {
     const mpmgeom::BoundaryGrid& layer = *w.layer;
     std::vector<std::vector<int>> facets_at(w.wall_nodes.size());
@@ -148,7 +148,6 @@ void find_corners(DualWall<D>& w) {
         return e.cross(w.position[layer.wall_facets(f, 2)] - a).normalized();
       }
     };
-    constexpr std::size_t kMaxNormals = 8;  // constrain_velocity_in_corner's bound
     // A corner or crease: two facets more than ~25 degrees apart (libgeom's crease angle).
     // Below it the facets approximate a smooth wall, whose normal the node's own is (the shipped
     // hillside: 82 of 10,462 Gamma nodes are past it, all by more than 80 degrees, at the
@@ -181,14 +180,14 @@ void find_corners(DualWall<D>& w) {
       for (const Vec<D>& a : distinct) {
         for (const Vec<D>& b : distinct) spread = std::min(spread, a.dot(b));
       }
-      if (spread < kCornerCosine && distinct.size() <= kMaxNormals && bend > 0.0) {
+      if (spread < kCornerCosine && distinct.size() <= kMaxCornerNormals && bend > 0.0) {
         w.corner_normals.insert(w.corner_normals.end(), distinct.begin(), distinct.end());
         w.corner_part.insert(w.corner_part.end(), parts.begin(), parts.end());
-        w.corner_gap.resize(w.corner_normals.size(), std::numeric_limits<double>::infinity());
       }
       w.corner_first[i + 1] = static_cast<int>(w.corner_normals.size());
     }
   }
+  w.corner_gap.assign(w.corner_normals.size(), std::numeric_limits<double>::infinity());
 }
 
 }  // namespace
@@ -286,11 +285,7 @@ void Solver<D>::setup_dual_walls() {
           w.layer->node_normals.row(static_cast<Eigen::Index>(i)).transpose().normalized());
       w.wall_node_part.push_back(part[i]);
     }
-    if (spec.corner_facets) {
-      find_corners(w);
-    } else {
-      w.corner_first.assign(w.wall_nodes.size() + 1, 0);
-    }
+    find_corners(w);
     w.impulse_offset = static_cast<int>(wall_impulse_.size());
     wall_impulse_.resize(
         wall_impulse_.size() + std::max<std::size_t>(1, w.layer->part_names.size()),
@@ -637,15 +632,15 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
       const int c0 = w.corner_first[i], c1 = w.corner_first[i + 1];
       // A separable corner holds the node against the facets its material touches (a foot
       // node lets the flow on the terrain slide on until it reaches the barrier).
-      std::array<Vec<D>, 8> normals;  // find_corners() keeps at most 8
-      std::array<int, 8> facet;
+      std::array<Vec<D>, kMaxCornerNormals> normals;
+      std::array<int, kMaxCornerNormals> facet;
       int count = 0;
       for (int c = c0; c < c1; ++c) {
         if (w.spec->contact.separable && w.corner_gap[c] > 0.0) continue;
         normals[count] = w.corner_normals[c];
         facet[count++] = c;
       }
-      std::array<double, 8> lambda{};
+      std::array<double, kMaxCornerNormals> lambda{};
       v[n] = std::visit(
           [&](const auto& condition) {
             if constexpr (D > 1) {  // a 1D wall is a point: one normal

@@ -40,6 +40,22 @@ struct BoxWall {
   WallContact contact;
 };
 
+/// The wall condition on a node in contact, given its velocity `slid` with the normal part taken
+/// out (frictionless sliding) and the size of that normal change per unit mass: sticky stops it,
+/// slip keeps it, Coulomb friction takes at most mu times the normal impulse from its speed.
+template <int D, class Condition>
+Vec<D> apply_condition(const Condition& condition, const Vec<D>& slid, double normal_change) {
+  if constexpr (std::is_same_v<Condition, Sticky>) {
+    return Vec<D>::Zero();
+  } else if constexpr (std::is_same_v<Condition, Slip>) {
+    return slid;
+  } else {
+    const double speed = slid.norm();
+    if (speed <= 0.0) return slid;
+    return slid * std::max(0.0, 1.0 - condition.mu * normal_change / speed);
+  }
+}
+
 /// The velocity of a node in contact after the wall condition, given the unconstrained velocity
 /// v (relative to the wall) and the unit normal n into the material.
 template <int D, class Condition>
@@ -47,20 +63,11 @@ Vec<D> constrain_velocity(const Condition& condition, bool separable, const Vec<
                           const Vec<D>& v) {
   const double vn = v.dot(n);
   if (separable && vn >= 0.0) return v;  // moving away: no contact force
-  if constexpr (std::is_same_v<Condition, Sticky>) {
-    return Vec<D>::Zero();
-  } else {
-    const Vec<D> vt = v - vn * n;
-    if constexpr (std::is_same_v<Condition, Slip>) {
-      return vt;
-    } else {
-      // Coulomb: the tangential impulse is at most mu times the normal impulse m |vn|.
-      const double speed = vt.norm();
-      if (speed <= 0.0) return vt;
-      return vt * std::max(0.0, 1.0 - condition.mu * std::abs(vn) / speed);
-    }
-  }
+  return apply_condition<D>(condition, Vec<D>(v - vn * n), std::abs(vn));
 }
+
+/// The most distinct facet normals a corner node is held against (constrain_velocity_in_corner).
+constexpr int kMaxCornerNormals = 8;
 
 /// The velocity nearest to v (Euclidean: a node has one mass) that enters none of the given
 /// planes: n_i . u >= 0 for each unit normal n_i of the wall facets meeting at a concave corner
@@ -113,11 +120,11 @@ requires(D > 1) Vec<D> project_to_cone(const Vec<D>* n, int count, const Vec<D>&
 }
 
 /// constrain_velocity() at a node where wall facets meet at a concave corner or crease, with
-/// the facets' distinct unit normals n[0 .. count): the node may move along none of them into
-/// the wall. Separable: free while v enters none; otherwise v is projected onto the cone of
-/// velocities that enter none (slip), with Coulomb friction taking at most mu times that
-/// projection's impulse from the sliding speed, or stopped (sticky). Bonded: the node slides
-/// only along every facet at once (in 2D, and in 3D where three facets meet, it is held).
+/// the facets' distinct unit normals n[0 .. count), count <= kMaxCornerNormals: the node may move
+/// along none of them into the wall. Separable: free while v enters none; otherwise v is projected
+/// onto the cone of velocities that enter none (slip), with Coulomb friction taking at most mu
+/// times that projection's impulse from the sliding speed, or stopped (sticky). Bonded: the node
+/// slides only along every facet at once (in 2D, and in 3D where three facets meet, it is held).
 /// With one normal this is constrain_velocity(). lambda (count entries, if given) receives the
 /// normal change of velocity each facet makes, l_i along n_i (the change less their sum is
 /// friction's), so that a force can be shared among the facets' parts.
@@ -131,26 +138,18 @@ requires(D > 1) Vec<D> constrain_velocity_in_corner(const Condition& condition, 
     if (u == v) return v;  // enters no facet: no contact force
   } else {
     // The part of v in no facet's normal direction (orthogonal to their span).
-    Eigen::Matrix<double, D, Eigen::Dynamic, 0, D, 8> normals(D, count);
+    Eigen::Matrix<double, D, Eigen::Dynamic, 0, D, kMaxCornerNormals> normals(D, count);
     for (int i = 0; i < count; ++i) normals.col(i) = n[i];
     const Eigen::ColPivHouseholderQR<decltype(normals)> qr(normals);
     const auto q = qr.householderQ() * Mat<D>::Identity();
     u = v;
     for (Eigen::Index r = 0; r < qr.rank(); ++r) u -= q.col(r).dot(v) * q.col(r);
     if (lambda) {
-      const Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 8, 1> l = qr.solve(u - v);
+      const Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxCornerNormals, 1> l = qr.solve(u - v);
       std::copy(l.data(), l.data() + count, lambda);
     }
   }
-  if constexpr (std::is_same_v<Condition, Sticky>) {
-    return Vec<D>::Zero();
-  } else if constexpr (std::is_same_v<Condition, Slip>) {
-    return u;
-  } else {
-    const double speed = u.norm();
-    if (speed <= 0.0) return u;
-    return u * std::max(0.0, 1.0 - condition.mu * (u - v).norm() / speed);
-  }
+  return apply_condition<D>(condition, u, (u - v).norm());
 }
 
 }  // namespace mpm
