@@ -477,8 +477,11 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
     }
     wall.multiplier_radius = r.in_range("multiplier_radius", 0.0, 8.0, false);
   }
+  const bool blending =
+      wall.method == CouplingMethod::mortar || wall.method == CouplingMethod::one_way;
+  wall.corner_facets = blending;
   if (r.has("corners")) {
-    if (wall.method != CouplingMethod::mortar && wall.method != CouplingMethod::one_way) {
+    if (!blending) {
       r.fail_at(r.child("corners"), "only used by Blending walls (method mortar or one-way)");
     }
     wall.corner_facets = r.choice("corners", {"normal", "facets"}) == "facets";

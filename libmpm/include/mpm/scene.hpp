@@ -90,9 +90,10 @@ struct DualWallSpec {
   /// Blending walls: Phi's multipliers within this many cell spacings of each other along the
   /// surface are merged into one (0: one per Phi node, as the coupling is built).
   double multiplier_radius = 0.0;
-  /// Blending walls ("corners": "facets"): a Gamma node where facets meet at a concave corner or
-  /// crease is held against each facet (walls.hpp, constrain_velocity_in_corner) rather than
-  /// along its own normal, their average, which lets material slide into one of them.
+  /// Blending walls ("corners": "facets", their default): a Gamma node where facets meet at a
+  /// concave corner or crease is held against each facet (walls.hpp,
+  /// constrain_velocity_in_corner) rather than along its own normal, their average, which lets
+  /// material slide into one of them ("normal"). Enhanced and sdf walls: false.
   bool corner_facets = false;
   /// Layer, coupling matrices and cell flags, built while the scene is read (from a point in
   /// 1D, a polyline in 2D, a mesh or a package from `mpm prep` in 3D).
