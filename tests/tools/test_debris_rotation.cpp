@@ -10,7 +10,7 @@
 // turned / shipped peak force 0.985 and 0.993, impulse 0.979 and 0.971, run-out 0.991 and 0.980
 // (0.5 m deep: 1.000 and 1.000). At coarser spacings the impact is not resolved (the flow
 // reaches the barrier one or two cells deep and its 0.01 s peak is 3 to 5 times this one), and
-// the peak differs by 13-18% between orientations there: why the test runs the shipped spacing.
+// the peak differs by 8-18% between orientations there: why the test runs the shipped spacing.
 #include <gtest/gtest.h>
 
 #include <Eigen/Core>
