@@ -470,15 +470,15 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
                 : method == "sdf"      ? CouplingMethod::sdf
                                        : CouplingMethod::mortar;
   wall.contact = read_contact(r, wall.method != CouplingMethod::sdf);
+  const bool blending =
+      wall.method == CouplingMethod::mortar || wall.method == CouplingMethod::one_way;
   if (r.has("multiplier_radius")) {
-    if (wall.method != CouplingMethod::mortar && wall.method != CouplingMethod::one_way) {
+    if (!blending) {
       r.fail_at(r.child("multiplier_radius"),
                 "only used by Blending walls (method mortar or one-way)");
     }
     wall.multiplier_radius = r.in_range("multiplier_radius", 0.0, 8.0, false);
   }
-  const bool blending =
-      wall.method == CouplingMethod::mortar || wall.method == CouplingMethod::one_way;
   wall.corner_facets = blending;
   if (r.has("corners")) {
     if (!blending) {

@@ -28,22 +28,8 @@ inline const std::filesystem::path kDebrisScene =
 struct DebrisOutcome {
   double peak_force = 0.0, peak_time = 0.0, impulse = 0.0, runout = 0.0, runout_deep = 0.0,
          mass_change = 1.0, retained = 0.0;
-  [[nodiscard]] nlohmann::json to_json() const {
-    return {{"peak_force", peak_force}, {"peak_time", peak_time},     {"impulse", impulse},
-            {"runout", runout},         {"runout_deep", runout_deep}, {"mass_change", mass_change},
-            {"retained", retained}};
-  }
-  static DebrisOutcome from_json(const nlohmann::json& j) {
-    DebrisOutcome o;
-    o.peak_force = j.at("peak_force").get<double>();
-    o.peak_time = j.at("peak_time").get<double>();
-    o.impulse = j.at("impulse").get<double>();
-    o.runout = j.at("runout").get<double>();
-    o.runout_deep = j.at("runout_deep").get<double>();
-    o.mass_change = j.at("mass_change").get<double>();
-    o.retained = j.at("retained").get<double>();
-    return o;
-  }
+  NLOHMANN_DEFINE_TYPE_INTRUSIVE(DebrisOutcome, peak_force, peak_time, impulse, runout, runout_deep,
+                                 mass_change, retained)
 };
 
 /// The shipped scene with its output cut to the end of the run and its boundary-grid cache left

@@ -5,7 +5,6 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
-#include <cstdio>
 #include <filesystem>
 #include <string>
 #include <vector>

@@ -56,7 +56,7 @@ TEST_P(DebrisWallTurned, Run) {
   const DebrisOutcome outcome = mpm::test::run_debris(doc, o.name);
   if (::testing::Test::HasFailure()) return;
   std::ofstream out(result_file(o.name));
-  out << outcome.to_json().dump(2) << '\n';
+  out << json(outcome).dump(2) << '\n';
   ASSERT_TRUE(out.flush()) << result_file(o.name);
 }
 
@@ -70,7 +70,7 @@ TEST(DebrisWallRotation, SamePeakForceRunoutAndImpulse) {
     std::ifstream in(file);
     ASSERT_TRUE(in) << file << " is missing: ctest runs DebrisWallTurned.Run/"
                     << kOrientations[k].name << " (a fixture of this test) first";
-    outcomes[k] = DebrisOutcome::from_json(json::parse(in));
+    outcomes[k] = json::parse(in).get<DebrisOutcome>();
     in.close();
     fs::remove(file);  // consumed: a later run of this test needs fresh runs
   }
