@@ -856,7 +856,7 @@ void Solver<D>::layer_couple(bool remapped) {
     // Apply to the new velocities (and to the old ones, which FLIP differences against), or to
     // the remapped velocities of MUSL; all D components in one solve. The blocks are the wall's
     // scratch (sized once per active set).
-    using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
+    using Block = NodeBlock<D>;
     auto solve = [&](NodeField<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
       const auto ng = static_cast<Eigen::Index>(w.grid_rows.size());
       const auto nl = static_cast<Eigen::Index>(w.layer_rows.size());

@@ -92,6 +92,15 @@ struct SolveWork {
   std::vector<double> work;  ///< ldlt_solve()'s
 };
 
+/// D components per node or multiplier, one row each, for the couplings' sparse products and
+/// solves. Row-major, so that each entry of a sparse matrix updates (or reads) one row's D
+/// values side by side: column-major, the products with R^A and R^alpha took twice as long (the
+/// floor's mortar coupling 3.3-3.7 -> 1.5-1.7 ms a step in its products, docs/performance.md,
+/// 2026-12-04). Eigen wants a one-column matrix column-major.
+template <int D>
+using NodeBlock =
+    Eigen::Matrix<double, Eigen::Dynamic, D, D == 1 ? Eigen::ColMajor : Eigen::RowMajor>;
+
 /// Contact state of one Gamma multiplier in Enhanced's active-set loop.
 enum class Contact : unsigned char { off, normal, stick, slip };
 
@@ -154,7 +163,7 @@ struct EnhancedState {
 
   // Scratch kept from step to step, so that a step whose solves reuse the factorisations in
   // hand allocates nothing (issue 9; test_allocation).
-  using Block = Eigen::Matrix<double, Eigen::Dynamic, D>;
+  using Block = NodeBlock<D>;
   std::vector<int> candidates, renumber;
   std::vector<double> candidate_diagonal, integral_list;
   std::vector<char> covered;
@@ -264,7 +273,7 @@ struct DualWall {
   std::vector<Eigen::Triplet<double>> grid_entries, layer_entries;
   std::vector<int> assembly_work;
   Eigen::VectorXd schur_diagonal;
-  Eigen::Matrix<double, Eigen::Dynamic, D> grid_block, layer_block, gap, lambda, residual, update;
+  NodeBlock<D> grid_block, layer_block, gap, lambda, residual, update;
   std::vector<double> solve_work;  ///< ldlt_solve()'s
   double min_cell_size = 0.0;      ///< for the CFL limit
   /// This step's layer particles by boundary node (layer_scatter(), which sums each node's terms
