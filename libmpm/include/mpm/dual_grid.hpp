@@ -95,7 +95,7 @@ struct SolveWork {
 /// D components per node or multiplier, one row each, for the couplings' sparse products and
 /// solves. Row-major, so that each entry of a sparse matrix updates (or reads) one row's D
 /// values side by side: column-major, the products with R^A and R^alpha took twice as long (the
-/// floor's mortar coupling 3.3-3.7 -> 1.5-1.7 ms a step in its products, docs/performance.md,
+/// floor's mortar coupling 3.3-3.9 -> 1.5-1.7 ms a step in its products, docs/performance.md,
 /// 2026-12-04). Eigen wants a one-column matrix column-major.
 template <int D>
 using NodeBlock =
