@@ -1147,5 +1147,37 @@ TEST_P(CornerImpact, NothingLeavesThroughTheFootOfAWall) {
 INSTANTIATE_TEST_SUITE_P(Methods, CornerImpact, ::testing::Values("mortar", "enhanced"),
                          [](const auto& p) { return std::string(p.param); });
 
+// A layer particle's stress is updated after the standard grid's pass (update_layer_stress):
+// invert one the boundary layer holds and the step names it, under both methods (Blending's
+// layer owns the particle; Enhanced's completes its gradient).
+class LayerStepCheck : public ::testing::TestWithParam<const char*> {};
+
+TEST_P(LayerStepCheck, NamesAnInvertedLayerParticle) {
+  InclineScene in = incline_2d(20.0, 0.5, kInclineH, 0.5, GetParam());
+  const Scene scene = parse_scene(in.doc, "<layer step check>");
+  Solver<2> s(scene);
+  const double dt = s.stable_dt(0.5);
+  s.step(dt);
+  ASSERT_FALSE(s.fault().has_value()) << *s.fault();
+  std::size_t held = s.particles.size();
+  for (std::size_t p = 0; p < s.particles.size() && held == s.particles.size(); ++p) {
+    if (s.particles.layer_wall[p] >= 0) held = p;
+  }
+  ASSERT_LT(held, s.particles.size()) << "no particle in the boundary layer";
+  // Linear elastic stress stays finite with F inverted; a hyperelastic one turns non-finite
+  // (log J): either way the step must name this particle.
+  s.particles.deformation_gradient[held](0, 0) *= -1.0;
+  s.step(dt);
+  ASSERT_TRUE(s.fault().has_value());
+  const std::string& fault = *s.fault();
+  EXPECT_NE(fault.find("particle " + std::to_string(held) + " "), std::string::npos) << fault;
+  EXPECT_TRUE(fault.find("deformation gradient inverted") != std::string::npos ||
+              fault.find("stress is not finite") != std::string::npos)
+      << fault;
+}
+
+INSTANTIATE_TEST_SUITE_P(Methods, LayerStepCheck, ::testing::Values("mortar", "enhanced"),
+                         [](const auto& p) { return std::string(p.param); });
+
 }  // namespace
 }  // namespace mpm

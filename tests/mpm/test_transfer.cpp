@@ -142,5 +142,32 @@ TEST(FreeFall, MatchesExactAnswer) {
   }
 }
 
+// A step stops at the first particle that went bad and names it: a particle whose F is
+// inverted before a step (a linear elastic body: its stress stays finite, so nothing else goes
+// wrong in that step) is named, and of two such particles the one with the lower index, under
+// either update scheme and on both cores (the parallel check keeps the least index).
+template <int D>
+void check_inverted_named(const std::string& update) {
+  auto doc = test::box_scene(D, "bspline2");
+  doc["scheme"]["update"] = update;
+  Solver<D> s(test::parse(doc));
+  const std::size_t n = s.particles.size();
+  ASSERT_GT(n, 8U);
+  const std::size_t first = n / 3, second = 2 * n / 3;
+  for (const std::size_t p : {second, first}) s.particles.deformation_gradient[p](0, 0) = -1.0;
+  s.step(1e-4);
+  ASSERT_TRUE(s.fault().has_value()) << update << ", " << D << "D";
+  const std::string& fault = *s.fault();
+  EXPECT_NE(fault.find("particle " + std::to_string(first) + " "), std::string::npos) << fault;
+  EXPECT_NE(fault.find("deformation gradient inverted"), std::string::npos) << fault;
+}
+
+TEST(StepChecks, NameTheFirstInvertedParticle) {
+  for (const char* update : {"usl", "musl"}) {
+    check_inverted_named<2>(update);
+    check_inverted_named<3>(update);
+  }
+}
+
 }  // namespace
 }  // namespace mpm
