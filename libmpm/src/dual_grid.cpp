@@ -360,6 +360,45 @@ void Solver<D>::setup_dual_walls() {
     }
     dual_.push_back(std::move(w));
   }
+
+  // The cells whose particles' stencils reach a node a Blending coupling may change, that is a
+  // row of its R^A (couple_beside()). Node i is in the stencil of a particle in cell c when
+  // c - 1 <= i <= c + 2 along each axis (linear kernel c, c + 1; quadratic B-spline and GIMP
+  // floor(x - 1/2) and the two after), so cells i - 2 to i + 1 are marked.
+  coupled_cell_.clear();
+  const Index<D> cells = grid.nodes - Index<D>::Ones();
+  for (const DualWall<D>& w : dual_) {
+    if (w.enhanced) continue;
+    if (coupled_cell_.empty()) coupled_cell_.assign(static_cast<std::size_t>(cells.prod()), 0);
+    const Eigen::SparseMatrix<double>& rows = w.spec->package->interface_coupling.grid;
+    std::vector<std::uint8_t> used(static_cast<std::size_t>(rows.rows()), 0);
+    for (Eigen::Index col = 0; col < rows.outerSize(); ++col) {
+      for (Eigen::SparseMatrix<double>::InnerIterator it(rows, col); it; ++it) {
+        used[static_cast<std::size_t>(it.row())] = 1;
+      }
+    }
+    for (std::size_t node = 0; node < used.size(); ++node) {
+      if (used[node] == 0) continue;
+      Index<D> lo, hi;  // the node's lattice index (last axis fastest), then its cells' range
+      auto rest = static_cast<long>(node);
+      for (int d = D - 1; d >= 0; --d) {
+        const auto i = static_cast<int>(rest % grid.nodes[d]);
+        rest /= grid.nodes[d];
+        lo[d] = std::max(0, i - 2);
+        hi[d] = std::min(cells[d] - 1, i + 1);
+      }
+      Index<D> c = lo;
+      while (true) {
+        long at = 0;
+        for (int d = 0; d < D; ++d) at = at * cells[d] + c[d];
+        coupled_cell_[static_cast<std::size_t>(at)] = 1;
+        int d = D - 1;
+        while (d >= 0 && c[d] == hi[d]) c[d] = lo[d], --d;
+        if (d < 0) break;
+        ++c[d];
+      }
+    }
+  }
 }
 
 // Ownership: a particle in a flagged standard-grid cell is looked up in the layer; found means
@@ -374,6 +413,7 @@ void Solver<D>::locate_in_layers() {
   const Index<D> cells = grid.nodes - Index<D>::Ones();
   constexpr std::size_t kChunk = 1024;
   layer_hits_.resize((P.size() + kChunk - 1) / kChunk);
+  near_coupling_.resize(coupled_cell_.empty() ? 0 : P.size());
   tbb::parallel_for(std::size_t{0}, layer_hits_.size(), [&](std::size_t chunk) {
     std::vector<LayerHit>& hits = layer_hits_[chunk];
     hits.clear();
@@ -392,6 +432,7 @@ void Solver<D>::locate_in_layers() {
             cells[d] - 1);
         cell = cell * cells[d] + i;
       }
+      if (!coupled_cell_.empty()) near_coupling_[p] = coupled_cell_[static_cast<std::size_t>(cell)];
       for (std::size_t wi = 0; wi < dual_.size(); ++wi) {
         const auto& flags = dual_[wi].spec->package->cell_flags;
         if (flags.empty() || flags[static_cast<std::size_t>(cell)] == 0) continue;
@@ -419,6 +460,17 @@ void Solver<D>::locate_in_layers() {
       layer_xi_.push_back(hit.xi);
     }
   }
+  // The coupling runs beside the gather of the particles it cannot reach when every wall with
+  // layer particles is a Blending wall (an Enhanced wall changes the standard-grid nodes of its
+  // layer particles' stencils, which move with them).
+  overlap_coupling_ = !coupled_cell_.empty();
+  bool coupled = false;
+  for (const auto& w : dual_) {
+    if (w.layer_particles == 0) continue;
+    coupled = true;
+    if (w.enhanced) overlap_coupling_ = false;
+  }
+  overlap_coupling_ = overlap_coupling_ && coupled;
   layer_stencil_.resize(layer_list_.size());
   layer_gradient_.resize(layer_list_.size());
   layer_terms_.resize(layer_list_.size());

@@ -15,6 +15,7 @@
 #include <tbb/combinable.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
+#include <tbb/task_group.h>
 
 #include "sparse_pattern.hpp"
 
@@ -267,8 +268,6 @@ void Solver<D>::step(double dt) {
   lap(&PhaseTimes::grid_update);
   apply_walls();
   lap(&PhaseTimes::walls);
-  couple_interfaces();
-  lap(&PhaseTimes::coupling);
   grid_to_particles(dt);
 }
 
@@ -575,11 +574,6 @@ void Solver<D>::apply_walls() {
 }
 
 template <int D>
-void Solver<D>::couple_interfaces() {
-  layer_couple(false);
-}
-
-template <int D>
 void Solver<D>::reset_wall_impulses() {
   std::fill(wall_impulse_.begin(), wall_impulse_.end(), Eigen::Vector3d::Zero());
 }
@@ -824,7 +818,7 @@ GridSample<D> sample_grid(Grid<D>& grid, const Stencil<D, Shape>& st, const Node
 // stress of the particles the standard grid alone moves with it.
 template <int D>
 template <class Shape>
-void Solver<D>::gather(double dt) {
+void Solver<D>::gather(double dt, Reach reach) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
   const bool usl = scene_.update == UpdateScheme::usl;
@@ -836,7 +830,7 @@ void Solver<D>::gather(double dt) {
     constexpr unsigned Parts = decltype(parts)::value;
     // Gathers particle p; with the gradient (USL), true if its stress is to be updated now.
     auto sample = [&](std::size_t p, Mat<D>& L) {
-      if (owned_by_layer(p)) return false;  // layer_gather
+      if (!takes(reach, p) || owned_by_layer(p)) return false;  // layer_gather
       const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
       const GridSample<D> s =
           sample_grid<Parts>(grid, st, grid.velocity_new, grid.velocity, mass_threshold_);
@@ -885,10 +879,10 @@ void Solver<D>::gather(double dt) {
 // the standard grid alone moves.
 template <int D>
 template <class Shape>
-void Solver<D>::gather_velocity_gradient(double dt) {
+void Solver<D>::gather_velocity_gradient(double dt, Reach reach) {
   auto& P = particles;
   sample_and_update_stress(dt, [&](std::size_t p, Mat<D>& L) {
-    if (owned_by_layer(p)) return false;  // layer_gather_gradient
+    if (!takes(reach, p) || owned_by_layer(p)) return false;  // layer_gather_gradient
     const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
     // Enhanced layer particles: layer_gather_gradient adds the layer's.
     return take_gradient(
@@ -948,16 +942,56 @@ void Solver<D>::sample_and_update_stress(double dt, Sample&& sample) {
   lap_start_ = now;
 }
 
+// A Blending coupling changes only rows of its R^A (standard-grid nodes) and its boundary grid,
+// so the particles whose stencils reach none of those nodes and that no layer holds gather the
+// same values before it as after (bit for bit): one core gathers them while the other couples
+// (its assembly and products are serial and would leave a core idle), and the rest are gathered
+// after. The phase timers charge the coupling its own duration, taken from what the pass was
+// charged over the same time, so the phases still add up to the step.
+template <int D>
+template <class Pass>
+void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
+  if (!overlap_coupling_) {
+    layer_couple(remapped);
+    lap(&PhaseTimes::coupling);
+    pass(Reach::all);
+    return;
+  }
+  using Clock = std::chrono::steady_clock;
+  const double gather_before = times_.grid_to_particles, stress_before = times_.stress;
+  // The free pass is the task and this thread couples: a thread waiting inside the pass's
+  // parallel loops could otherwise pick up the coupling and hold the pass's next loop back.
+  tbb::task_group beside;
+  beside.run([&] { pass(Reach::free); });
+  const auto start = Clock::now();
+  layer_couple(remapped);
+  const double coupling = std::chrono::duration<double>(Clock::now() - start).count();
+  beside.wait();
+  lap(&PhaseTimes::grid_to_particles);
+  const double gathered = times_.grid_to_particles - gather_before;
+  const double stressed = times_.stress - stress_before;
+  const double charged = gathered + stressed;
+  if (charged > 0.0) {
+    const double moved = std::min(coupling, charged);
+    times_.grid_to_particles -= moved * gathered / charged;
+    times_.stress -= moved * stressed / charged;
+    times_.coupling += moved;
+  }
+  pass(Reach::near);
+}
+
 template <int D>
 void Solver<D>::grid_to_particles(double dt) {
   const bool usl = scene_.update == UpdateScheme::usl;
   dispatch_shape(scene_.shape, [&](auto shape) {
     using Shape = decltype(shape);
-    gather<Shape>(dt);
+    couple_beside(false, [&](Reach reach) { gather<Shape>(dt, reach); });
     layer_gather(dt);
     if (!usl) {
       // MUSL (Sulsky et al. 1995): map the updated particle momenta back to the grid at x_p^n
       // and take the strain rate from that smoother field (both grids, coupled again on Phi).
+      // (The free particles' part of this remap beside the coupling too was slower: the scatter
+      // in two halves, docs/performance.md.)
       for_each_active_node([&](std::size_t n) { grid.momentum[n].setZero(); });
       scatter<Shape>(false);
       for_each_active_node([&](std::size_t n) {
@@ -969,9 +1003,7 @@ void Solver<D>::grid_to_particles(double dt) {
       lap(&PhaseTimes::walls);
       layer_remap();
       lap(&PhaseTimes::grid_to_particles);
-      layer_couple(true);
-      lap(&PhaseTimes::coupling);
-      gather_velocity_gradient<Shape>(dt);
+      couple_beside(true, [&](Reach reach) { gather_velocity_gradient<Shape>(dt, reach); });
       layer_gather_gradient();
     }
   });

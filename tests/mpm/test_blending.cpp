@@ -357,7 +357,10 @@ INSTANTIATE_TEST_SUITE_P(MethodAndShape, BlendingBarSweep,
                          ::testing::Combine(::testing::Values("mortar", "enhanced"),
                                             ::testing::Values("linear", "gimp", "bspline2")),
                          [](const auto& p) {
-                           return std::string(std::get<0>(p.param)) + "_" + std::get<1>(p.param);
+                           std::string name =
+                               std::string(std::get<0>(p.param)) + "_" + std::get<1>(p.param);
+                           std::ranges::replace(name, '-', '_');
+                           return name;
                          });
 
 // ---------------------------------------------------------------------------------------------
@@ -1177,6 +1180,86 @@ TEST_P(LayerStepCheck, NamesAnInvertedLayerParticle) {
 
 INSTANTIATE_TEST_SUITE_P(Methods, LayerStepCheck, ::testing::Values("mortar", "enhanced"),
                          [](const auto& p) { return std::string(p.param); });
+
+// The Blending coupling runs on one core beside the gather of the particles it cannot change
+// (Solver::couple_beside()): those the step takes as free must be in no layer, and every node
+// of their stencils outside every row of R^A, the only standard-grid nodes the coupling writes.
+// The tilted incline's wall crosses cells at every offset; each kernel, 2D and 3D.
+class CouplingOverlap : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {};
+
+// The incline's block (3 cells thick: every particle reaches the coupled nodes) and a copy of
+// it `lift` along the normal, falling freely above it, whose particles do not.
+template <int D>
+void expect_free_particles_untouched(InclineScene in, double lift) {
+  json upper = in.doc["bodies"][0];
+  upper["name"] = "upper";
+  for (const char* key : {"min", "max"}) {
+    for (int d = 0; d < D; ++d)
+      upper["shape"][key][d] = upper["shape"][key][d].get<double>() + lift * in.normal[d];
+  }
+  in.doc["bodies"].push_back(upper);
+  const Scene scene = parse_scene(in.doc, "<coupling overlap>");
+  Solver<D> s(scene);
+  const double dt = s.stable_dt(0.5);
+  for (int step = 0; step < 3; ++step) s.step(dt);
+  ASSERT_FALSE(s.fault().has_value()) << *s.fault();
+  std::vector<char> written(s.grid.size(), 0);
+  for (const DualWall<D>& w : s.dual_walls()) {
+    for (Eigen::Index col = 0; col < w.grid_coupling.outerSize(); ++col) {
+      for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, col); it; ++it) {
+        written[static_cast<std::size_t>(it.row())] = 1;
+      }
+    }
+  }
+  const auto& near = s.near_coupling();
+  ASSERT_EQ(near.size(), s.particles.size());
+  std::size_t free = 0, reaching = 0;  // free particles; particles reaching a written node
+  dispatch_shape(scene.shape, [&](auto shape) {
+    for (std::size_t p = 0; p < s.particles.size(); ++p) {
+      const Stencil<D, decltype(shape)> st(s.grid, s.particles.position[p],
+                                           s.particles.half_width[p]);
+      bool reaches = false;
+      st.for_each(s.grid, [&](int node, double, const Vec<D>&, const Vec<D>&) {
+        reaches = reaches || written[static_cast<std::size_t>(node)] != 0;
+      });
+      reaching += reaches ? 1 : 0;
+      if (near[p] != 0) continue;
+      ++free;
+      EXPECT_FALSE(reaches) << "free particle " << p << " reaches a node the coupling writes";
+      EXPECT_LT(s.particles.layer_wall[p], 0) << "free particle " << p << " is in the layer";
+    }
+  });
+  // Not vacuous: both kinds are there, and the cell test takes most of the others as free.
+  EXPECT_GT(reaching, 0U);
+  EXPECT_GT(free, 0U);
+  EXPECT_LE(s.particles.size() - free, 2 * reaching)
+      << "free " << free << " of " << s.particles.size();
+}
+
+TEST_P(CouplingOverlap, FreeParticlesReachNoNodeTheCouplingWrites2D) {
+  const auto& [method, shape] = GetParam();
+  InclineScene in = incline_2d(20.0, 0.5, kInclineH, 0.5, method);
+  in.doc["shape_function"] = shape;
+  expect_free_particles_untouched<2>(in, 0.25);
+}
+
+TEST_P(CouplingOverlap, FreeParticlesReachNoNodeTheCouplingWrites3D) {
+  const auto& [method, shape] = GetParam();
+  TempDir dir;
+  InclineScene in = incline_3d(20.0, 0.5, dir.path(), method);
+  in.doc["shape_function"] = shape;
+  expect_free_particles_untouched<3>(in, 0.2);
+}
+
+INSTANTIATE_TEST_SUITE_P(MethodAndShape, CouplingOverlap,
+                         ::testing::Combine(::testing::Values("mortar", "one-way"),
+                                            ::testing::Values("bspline2", "gimp", "linear")),
+                         [](const auto& p) {
+                           std::string name =
+                               std::string(std::get<0>(p.param)) + "_" + std::get<1>(p.param);
+                           std::ranges::replace(name, '-', '_');
+                           return name;
+                         });
 
 }  // namespace
 }  // namespace mpm

@@ -5,12 +5,14 @@
 //   particles_to_grid();        // mass, momentum, internal and external force
 //   update_grid(dt);            // v_I^{n+1} = (p_I + dt f_I) / m_I
 //   apply_walls();              // wall conditions on the box faces and on the Gamma nodes
-//   couple_interfaces();        // dual-grid walls: multipliers on Phi tie the two grids
-//   grid_to_particles(dt);      // v_p, x_p (PIC/FLIP or APIC); MUSL remap; stress update
+//   grid_to_particles(dt);      // dual-grid walls: multipliers on Phi tie the two grids (on one
+//                               // core, while the other gathers the particles they cannot
+//                               // reach); v_p, x_p (PIC/FLIP or APIC); MUSL remap; stress
 //
 // make_simulation() hides the dimension behind the Simulation interface for the run loop.
 
 #include <chrono>
+#include <cstdint>
 #include <memory>
 #include <optional>
 #include <string>
@@ -35,9 +37,10 @@ struct Energies {
 /// Wall-clock seconds spent in each phase of the steps so far (steady clock, summed). The
 /// phases partition step(): locate (which particles are in a boundary layer, and where),
 /// particles to grid (binning and scatter, both grids), grid update, walls (box, sdf and Gamma
-/// conditions), coupling (the Phi and Enhanced solves, the remap's included), grid to particles
-/// (gather, MUSL remap, velocity gradients), stress (the constitutive update), advect (move and
-/// check the particles).
+/// conditions), coupling (the Phi and Enhanced solves, the remap's included; a Blending
+/// coupling's own duration where it ran beside the gather, taken from the gather's time),
+/// grid to particles (gather, MUSL remap, velocity gradients), stress (the constitutive update),
+/// advect (move and check the particles).
 struct PhaseTimes {
   double locate = 0.0;
   double particles_to_grid = 0.0;
@@ -146,13 +149,17 @@ class Solver final : public Simulation {
   void particles_to_grid();
   void update_grid(double dt);
   void apply_walls();
-  void couple_interfaces();
+  /// Couples the dual-grid walls first (layer_couple(), beside the gather of the particles whose
+  /// stencils reach no node a coupling changes), then gathers.
   void grid_to_particles(double dt);
 
   /// The dual-grid walls (Blending and Enhanced), in scene order.
   [[nodiscard]] const std::vector<DualWall<D>>& dual_walls() const { return dual_; }
   /// Which particles each layer holds; run by particles_to_grid(), public for tests.
   void locate_in_layers();
+  /// Per particle, this step: 1 where its stencil may reach a node a Blending coupling changes
+  /// (its cell's, locate_in_layers()); empty without Blending walls. Public for tests.
+  [[nodiscard]] const std::vector<std::uint8_t>& near_coupling() const { return near_coupling_; }
 
   /// Index range [begin, end) of the particles of each material.
   [[nodiscard]] const std::vector<std::pair<std::size_t, std::size_t>>& material_groups() const {
@@ -163,16 +170,26 @@ class Solver final : public Simulation {
   Grid<D> grid;
 
  private:
+  /// Which particles a gather pass takes: all, or those whose stencils reach no node a Blending
+  /// coupling may change (free: gathered while the coupling runs), or the others (near).
+  enum class Reach { all, free, near };
+  [[nodiscard]] bool takes(Reach reach, std::size_t p) const {
+    return reach == Reach::all || (near_coupling_[p] != 0) == (reach == Reach::near);
+  }
   template <class Shape>
   void scatter(bool with_force);
   template <class Shape>
   void scatter_factorised(const Stencil<D, Shape>& st, double m, const double (&v)[D],
                           const double (&C)[D][D], const double (*body_force)[D],
                           const double (*stress)[D][D]);
+  /// layer_couple(remapped) and pass(Reach): the coupling on one core beside pass(free), then
+  /// pass(near), where this step's coupling is Blending only; else the coupling, then pass(all).
+  template <class Pass>
+  void couple_beside(bool remapped, Pass&& pass);
   template <class Shape>
-  void gather(double dt);
+  void gather(double dt, Reach reach);
   template <class Shape>
-  void gather_velocity_gradient(double dt);
+  void gather_velocity_gradient(double dt, Reach reach);
   template <class Sample>
   void sample_and_update_stress(double dt, Sample&& sample);
   /// For sample_and_update_stress(): the standard grid's velocity gradient at particle p goes to
@@ -263,6 +280,14 @@ class Solver final : public Simulation {
     Eigen::Vector3d xi;
   };
   std::vector<std::vector<LayerHit>> layer_hits_;
+  /// Per standard-grid cell (locate_in_layers()'s numbering), 1 where the stencil of a particle
+  /// in it (nodes c - 1 to c + 2 along each axis, every kernel) reaches a node of a Blending
+  /// wall's R^A, that is a node its coupling may change; empty without Blending walls.
+  std::vector<std::uint8_t> coupled_cell_;
+  /// Per particle, this step (locate_in_layers()): coupled_cell_ of its cell.
+  std::vector<std::uint8_t> near_coupling_;
+  /// This step's coupling may run beside the gather of the free particles (couple_beside()).
+  bool overlap_coupling_ = false;
   /// Signed-distance walls (the baseline): standard-grid nodes on or behind the surface, within
   /// reach of the kernel, with the unit normal into the material at each.
   struct SdfWall {
