@@ -353,15 +353,18 @@ TEST_P(BlendingBarSweep, PlateauContactAndReboundAtTwentyOffsets) {
   std::printf("took %.2f s\n", seconds_since(start));
 }
 
+/// Test name of a (method, shape function) parameter: "one-way" is spelt one_way.
+std::string method_and_shape_name(
+    const ::testing::TestParamInfo<std::tuple<const char*, const char*>>& p) {
+  std::string name = std::string(std::get<0>(p.param)) + "_" + std::get<1>(p.param);
+  std::ranges::replace(name, '-', '_');
+  return name;
+}
+
 INSTANTIATE_TEST_SUITE_P(MethodAndShape, BlendingBarSweep,
                          ::testing::Combine(::testing::Values("mortar", "enhanced"),
                                             ::testing::Values("linear", "gimp", "bspline2")),
-                         [](const auto& p) {
-                           std::string name =
-                               std::string(std::get<0>(p.param)) + "_" + std::get<1>(p.param);
-                           std::ranges::replace(name, '-', '_');
-                           return name;
-                         });
+                         method_and_shape_name);
 
 // ---------------------------------------------------------------------------------------------
 // Free flight across Phi: a block with a non-uniform velocity (a standing wave on a drift away
@@ -1254,12 +1257,7 @@ TEST_P(CouplingOverlap, FreeParticlesReachNoNodeTheCouplingWrites3D) {
 INSTANTIATE_TEST_SUITE_P(MethodAndShape, CouplingOverlap,
                          ::testing::Combine(::testing::Values("mortar", "one-way"),
                                             ::testing::Values("bspline2", "gimp", "linear")),
-                         [](const auto& p) {
-                           std::string name =
-                               std::string(std::get<0>(p.param)) + "_" + std::get<1>(p.param);
-                           std::ranges::replace(name, '-', '_');
-                           return name;
-                         });
+                         method_and_shape_name);
 
 }  // namespace
 }  // namespace mpm
