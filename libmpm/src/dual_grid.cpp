@@ -361,16 +361,42 @@ void Solver<D>::setup_dual_walls() {
     dual_.push_back(std::move(w));
   }
 
-  // The cells whose particles' stencils reach a node a Blending coupling may change, that is a
-  // row of its R^A (couple_beside()). Node i is in the stencil of a particle in cell c when
-  // c - 1 <= i <= c + 2 along each axis (linear kernel c, c + 1; quadratic B-spline and GIMP
-  // floor(x - 1/2) and the two after), so cells i - 2 to i + 1 are marked.
+  // The cells whose particles' stencils reach a node a coupling may change (couple_beside()).
+  // Node i is in the stencil of a particle in cell c when c - 1 <= i <= c + 2 along each axis
+  // (linear kernel c, c + 1; quadratic B-spline and GIMP floor(x - 1/2) and the two after), so
+  // a node marks cells i - 2 to i + 1. A Blending coupling writes the rows of its R^A; an
+  // Enhanced one the rows of its R^A on Gamma and the stencil nodes of its layer particles,
+  // which lie in the package's flagged cells c: nodes c - 1 to c + 2, so cells c - 3 to c + 3.
   coupled_cell_.clear();
+  if (dual_.empty()) return;
   const Index<D> cells = grid.nodes - Index<D>::Ones();
+  coupled_cell_.assign(static_cast<std::size_t>(cells.prod()), 0);
+  // Marks the cells from `at` + below to `at` + above along each axis, `at` a lattice index of
+  // `size` points per axis, last axis fastest.
+  auto mark = [&](long at, const Index<D>& size, int below, int above) {
+    Index<D> lo, hi;
+    for (int d = D - 1; d >= 0; --d) {
+      const auto i = static_cast<int>(at % size[d]);
+      at /= size[d];
+      lo[d] = std::max(0, i + below);
+      hi[d] = std::min(cells[d] - 1, i + above);
+      if (lo[d] > hi[d]) return;
+    }
+    Index<D> c = lo;
+    while (true) {
+      long cell = 0;
+      for (int d = 0; d < D; ++d) cell = cell * cells[d] + c[d];
+      coupled_cell_[static_cast<std::size_t>(cell)] = 1;
+      int d = D - 1;
+      while (d >= 0 && c[d] == hi[d]) c[d] = lo[d], --d;
+      if (d < 0) break;
+      ++c[d];
+    }
+  };
   for (const DualWall<D>& w : dual_) {
-    if (w.enhanced) continue;
-    if (coupled_cell_.empty()) coupled_cell_.assign(static_cast<std::size_t>(cells.prod()), 0);
-    const Eigen::SparseMatrix<double>& rows = w.spec->package->interface_coupling.grid;
+    const auto& package = *w.spec->package;
+    const Eigen::SparseMatrix<double>& rows =
+        w.enhanced ? package.wall_coupling.grid : package.interface_coupling.grid;
     std::vector<std::uint8_t> used(static_cast<std::size_t>(rows.rows()), 0);
     for (Eigen::Index col = 0; col < rows.outerSize(); ++col) {
       for (Eigen::SparseMatrix<double>::InnerIterator it(rows, col); it; ++it) {
@@ -378,25 +404,11 @@ void Solver<D>::setup_dual_walls() {
       }
     }
     for (std::size_t node = 0; node < used.size(); ++node) {
-      if (used[node] == 0) continue;
-      Index<D> lo, hi;  // the node's lattice index (last axis fastest), then its cells' range
-      auto rest = static_cast<long>(node);
-      for (int d = D - 1; d >= 0; --d) {
-        const auto i = static_cast<int>(rest % grid.nodes[d]);
-        rest /= grid.nodes[d];
-        lo[d] = std::max(0, i - 2);
-        hi[d] = std::min(cells[d] - 1, i + 1);
-      }
-      Index<D> c = lo;
-      while (true) {
-        long at = 0;
-        for (int d = 0; d < D; ++d) at = at * cells[d] + c[d];
-        coupled_cell_[static_cast<std::size_t>(at)] = 1;
-        int d = D - 1;
-        while (d >= 0 && c[d] == hi[d]) c[d] = lo[d], --d;
-        if (d < 0) break;
-        ++c[d];
-      }
+      if (used[node] != 0) mark(static_cast<long>(node), grid.nodes, -2, 1);
+    }
+    if (!w.enhanced) continue;
+    for (std::size_t cell = 0; cell < package.cell_flags.size(); ++cell) {
+      if (package.cell_flags[cell] != 0) mark(static_cast<long>(cell), cells, -3, 3);
     }
   }
 }
@@ -460,17 +472,9 @@ void Solver<D>::locate_in_layers() {
       layer_xi_.push_back(hit.xi);
     }
   }
-  // The coupling runs beside the gather of the particles it cannot reach when every wall with
-  // layer particles is a Blending wall (an Enhanced wall changes the standard-grid nodes of its
-  // layer particles' stencils, which move with them).
-  overlap_coupling_ = !coupled_cell_.empty();
-  bool coupled = false;
-  for (const auto& w : dual_) {
-    if (w.layer_particles == 0) continue;
-    coupled = true;
-    if (w.enhanced) overlap_coupling_ = false;
-  }
-  overlap_coupling_ = overlap_coupling_ && coupled;
+  // The coupling runs beside the gather of the particles it cannot reach when it has work.
+  overlap_coupling_ =
+      std::ranges::any_of(dual_, [](const auto& w) { return w.layer_particles > 0; });
   layer_stencil_.resize(layer_list_.size());
   layer_gradient_.resize(layer_list_.size());
   layer_terms_.resize(layer_list_.size());

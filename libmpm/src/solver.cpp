@@ -942,12 +942,13 @@ void Solver<D>::sample_and_update_stress(double dt, Sample&& sample) {
   lap_start_ = now;
 }
 
-// A Blending coupling changes only rows of its R^A (standard-grid nodes) and its boundary grid,
-// so the particles whose stencils reach none of those nodes and that no layer holds gather the
-// same values before it as after (bit for bit): one core gathers them while the other couples
-// (its assembly and products are serial and would leave a core idle), and the rest are gathered
-// after. The phase timers charge the coupling its own duration, taken from what the pass was
-// charged over the same time, so the phases still add up to the step.
+// A coupling changes few standard-grid nodes (Blending: rows of its R^A; Enhanced: rows of its
+// R^A on Gamma and its layer particles' stencil nodes) besides its boundary grid, so the
+// particles whose stencils reach none of them and that no layer holds gather the same values
+// before it as after (bit for bit): one core gathers them while the other couples (its assembly
+// and products are serial and would leave a core idle), and the rest are gathered after. The phase
+// timers charge the coupling its own duration, taken from what the pass was charged over the same
+// time, so the phases still add up to the step.
 template <int D>
 template <class Pass>
 void Solver<D>::couple_beside(bool remapped, Pass&& pass) {

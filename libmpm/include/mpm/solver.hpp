@@ -37,8 +37,8 @@ struct Energies {
 /// Wall-clock seconds spent in each phase of the steps so far (steady clock, summed). The
 /// phases partition step(): locate (which particles are in a boundary layer, and where),
 /// particles to grid (binning and scatter, both grids), grid update, walls (box, sdf and Gamma
-/// conditions), coupling (the Phi and Enhanced solves, the remap's included; a Blending
-/// coupling's own duration where it ran beside the gather, taken from the gather's time),
+/// conditions), coupling (the Phi and Enhanced solves, the remap's included: their own
+/// duration, as they run beside the gather, taken from the gather's time),
 /// grid to particles (gather, MUSL remap, velocity gradients), stress (the constitutive update),
 /// advect (move and check the particles).
 struct PhaseTimes {
@@ -157,8 +157,8 @@ class Solver final : public Simulation {
   [[nodiscard]] const std::vector<DualWall<D>>& dual_walls() const { return dual_; }
   /// Which particles each layer holds; run by particles_to_grid(), public for tests.
   void locate_in_layers();
-  /// Per particle, this step: 1 where its stencil may reach a node a Blending coupling changes
-  /// (its cell's, locate_in_layers()); empty without Blending walls. Public for tests.
+  /// Per particle, this step: 1 where its stencil may reach a node a coupling changes (its
+  /// cell's, locate_in_layers()); empty without dual-grid walls. Public for tests.
   [[nodiscard]] const std::vector<std::uint8_t>& near_coupling() const { return near_coupling_; }
 
   /// Index range [begin, end) of the particles of each material.
@@ -170,7 +170,7 @@ class Solver final : public Simulation {
   Grid<D> grid;
 
  private:
-  /// Which particles a gather pass takes: all, or those whose stencils reach no node a Blending
+  /// Which particles a gather pass takes: all, or those whose stencils reach no node a
   /// coupling may change (free: gathered while the coupling runs), or the others (near).
   enum class Reach { all, free, near };
   [[nodiscard]] bool takes(Reach reach, std::size_t p) const {
@@ -183,7 +183,7 @@ class Solver final : public Simulation {
                           const double (&C)[D][D], const double (*body_force)[D],
                           const double (*stress)[D][D]);
   /// layer_couple(remapped) and pass(Reach): the coupling on one core beside pass(free), then
-  /// pass(near), where this step's coupling is Blending only; else the coupling, then pass(all).
+  /// pass(near), where a wall has layer particles this step; else pass(all).
   template <class Pass>
   void couple_beside(bool remapped, Pass&& pass);
   template <class Shape>
@@ -281,8 +281,8 @@ class Solver final : public Simulation {
   };
   std::vector<std::vector<LayerHit>> layer_hits_;
   /// Per standard-grid cell (locate_in_layers()'s numbering), 1 where the stencil of a particle
-  /// in it (nodes c - 1 to c + 2 along each axis, every kernel) reaches a node of a Blending
-  /// wall's R^A, that is a node its coupling may change; empty without Blending walls.
+  /// in it (nodes c - 1 to c + 2 along each axis, every kernel) may reach a node a dual-grid
+  /// wall's coupling changes (setup_dual_walls()); empty without dual-grid walls.
   std::vector<std::uint8_t> coupled_cell_;
   /// Per particle, this step (locate_in_layers()): coupled_cell_ of its cell.
   std::vector<std::uint8_t> near_coupling_;
