@@ -1243,8 +1243,8 @@ void expect_free_particles_untouched(InclineScene in, double lift) {
   EXPECT_GT(free, 0U);
   EXPECT_LE(s.particles.size() - free, 2 * reaching)
       << "free " << free << " of " << s.particles.size();
-  std::printf("%zu particles: %zu free, %zu reach a node the coupling writes\n",
-              s.particles.size(), free, reaching);
+  std::printf("%zu particles: %zu free, %zu reach a node the coupling writes\n", s.particles.size(),
+              free, reaching);
 }
 
 TEST_P(CouplingOverlap, FreeParticlesReachNoNodeTheCouplingWrites2D) {
