@@ -102,13 +102,7 @@ Eigen::SparseMatrix<double> on_grid(const Grid<D>& grid, const Eigen::SparseMatr
   for (int col = 0; col < m.outerSize(); ++col) {
     column.clear();
     for (Eigen::SparseMatrix<double>::InnerIterator it(m, col); it; ++it) {
-      auto row = static_cast<int>(it.row());
-      Index<D> i;
-      for (int d = D - 1; d >= 0; --d) {
-        i[d] = row % grid.nodes[d];
-        row /= grid.nodes[d];
-      }
-      column.emplace_back(grid.linear(i), it.value());
+      column.emplace_back(grid.linear(lattice_index<D>(it.row(), grid.nodes)), it.value());
     }
     std::sort(column.begin(), column.end());
     out.startVec(col);
@@ -371,27 +365,17 @@ void Solver<D>::setup_dual_walls() {
   if (dual_.empty()) return;
   const Index<D> cells = grid.nodes - Index<D>::Ones();
   coupled_cell_.assign(static_cast<std::size_t>(cells.prod()), 0);
-  // Marks the cells from `at` + below to `at` + above along each axis, `at` a lattice index of
-  // `size` points per axis, last axis fastest.
+  // Marks the cells from `at` + below to `at` + above along each axis, `at` an entry of a
+  // lattice of `size` points per axis (lattice_index()).
   auto mark = [&](long at, const Index<D>& size, int below, int above) {
-    Index<D> lo, hi;
-    for (int d = D - 1; d >= 0; --d) {
-      const auto i = static_cast<int>(at % size[d]);
-      at /= size[d];
-      lo[d] = std::max(0, i + below);
-      hi[d] = std::min(cells[d] - 1, i + above);
-      if (lo[d] > hi[d]) return;
-    }
-    Index<D> c = lo;
-    while (true) {
+    const Index<D> i = lattice_index<D>(at, size);
+    const Index<D> lo = (i.array() + below).max(0).matrix();
+    const Index<D> hi = (i.array() + above).min(cells.array() - 1).matrix();
+    for_each_in_box(lo, hi, [&](const Index<D>& c) {
       long cell = 0;
       for (int d = 0; d < D; ++d) cell = cell * cells[d] + c[d];
       coupled_cell_[static_cast<std::size_t>(cell)] = 1;
-      int d = D - 1;
-      while (d >= 0 && c[d] == hi[d]) c[d] = lo[d], --d;
-      if (d < 0) break;
-      ++c[d];
-    }
+    });
   };
   for (const DualWall<D>& w : dual_) {
     const auto& package = *w.spec->package;
@@ -472,9 +456,6 @@ void Solver<D>::locate_in_layers() {
       layer_xi_.push_back(hit.xi);
     }
   }
-  // The coupling runs beside the gather of the particles it cannot reach when it has work.
-  overlap_coupling_ =
-      std::ranges::any_of(dual_, [](const auto& w) { return w.layer_particles > 0; });
   layer_stencil_.resize(layer_list_.size());
   layer_gradient_.resize(layer_list_.size());
   layer_terms_.resize(layer_list_.size());

@@ -952,7 +952,8 @@ void Solver<D>::sample_and_update_stress(double dt, Sample&& sample) {
 template <int D>
 template <class Pass>
 void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
-  if (!overlap_coupling_) {
+  // Nothing to overlap where no wall has layer particles this step (its coupling is no work).
+  if (std::ranges::none_of(dual_, [](const auto& w) { return w.layer_particles > 0; })) {
     layer_couple(remapped);
     lap(&PhaseTimes::coupling);
     pass(Reach::all);

@@ -1184,10 +1184,11 @@ TEST_P(LayerStepCheck, NamesAnInvertedLayerParticle) {
 INSTANTIATE_TEST_SUITE_P(Methods, LayerStepCheck, ::testing::Values("mortar", "enhanced"),
                          [](const auto& p) { return std::string(p.param); });
 
-// The Blending coupling runs on one core beside the gather of the particles it cannot change
+// A dual-grid coupling runs on one core beside the gather of the particles it cannot change
 // (Solver::couple_beside()): those the step takes as free must be in no layer, and every node
-// of their stencils outside every row of R^A, the only standard-grid nodes the coupling writes.
-// The tilted incline's wall crosses cells at every offset; each kernel, 2D and 3D.
+// of their stencils outside the standard-grid nodes the coupling may write (Blending: every row
+// of R^A; Enhanced: the rows of the step's contact system). The tilted incline's wall crosses
+// cells at every offset; each method and kernel, 2D and 3D.
 class CouplingOverlap : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {};
 
 // The incline's block (3 cells thick: every particle reaches the coupled nodes) and a copy of

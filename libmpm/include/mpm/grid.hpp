@@ -342,17 +342,9 @@ struct Grid {
           lo[d] = c[d] >= 1 ? (c[d] - 1) / 2 : 0;
           hi[d] = std::min((c[d] + 1) / 2, blocks[d] - 1);
         }
-        Index<D> b = lo;
-        while (true) {
+        for_each_in_box(lo, hi, [&](const Index<D>& b) {
           block_active[static_cast<std::size_t>(block_index(b))] = 1;
-          int d = D - 1;
-          while (d >= 0 && b[d] == hi[d]) {
-            b[d] = lo[d];
-            --d;
-          }
-          if (d < 0) break;
-          ++b[d];
-        }
+        });
       }
       for (int d = D - 1; d >= 0 && ++c[d] == halves[d]; --d) c[d] = 0;
     }

@@ -286,8 +286,6 @@ class Solver final : public Simulation {
   std::vector<std::uint8_t> coupled_cell_;
   /// Per particle, this step (locate_in_layers()): coupled_cell_ of its cell.
   std::vector<std::uint8_t> near_coupling_;
-  /// This step's coupling may run beside the gather of the free particles (couple_beside()).
-  bool overlap_coupling_ = false;
   /// Signed-distance walls (the baseline): standard-grid nodes on or behind the surface, within
   /// reach of the kernel, with the unit normal into the material at each.
   struct SdfWall {
