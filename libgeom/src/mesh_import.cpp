@@ -563,13 +563,14 @@ struct Limits {
 // build's test suite, two tests at a time) the 0.6 MB terrain took more than 20 s of wall clock
 // to read and a valid scene was refused; its CPU time is a few seconds whatever the load. The
 // wall clock only backs it up, at ten times as much.
-Limits limits_for(const fs::path& file) {
+Limits limits_for(const fs::path& file, std::uint64_t memory_budget_bytes) {
   std::error_code ec;
   const double size = static_cast<double>(fs::file_size(file, ec));
   const double bytes = ec ? 0.0 : size;
   const double physical =
       static_cast<double>(::sysconf(_SC_PHYS_PAGES)) * static_cast<double>(::sysconf(_SC_PAGESIZE));
-  double memory = std::max(4.0 * (1ull << 30), 64.0 * bytes);
+  double memory = memory_budget_bytes > 0 ? static_cast<double>(memory_budget_bytes)
+                                          : std::max(4.0 * (1ull << 30), 64.0 * bytes);
   if (physical > 0.0) memory = std::min(memory, 0.75 * physical);
   const double seconds = 20.0 + bytes / 1e6;
   return {static_cast<std::uint64_t>(memory), seconds, 10.0 * seconds};
@@ -789,7 +790,7 @@ void read_soup_isolated(const fs::path& file, const ImportOptions& options, Soup
     child_import(fds[1], file, options);
   }
   ::close(fds[1]);
-  ChildReader in(pid, fds[0], file, limits_for(file));
+  ChildReader in(pid, fds[0], file, limits_for(file, options.memory_budget_bytes));
   char status = 0;
   if (in.some(&status, 1) == 0) {
     in.finish();

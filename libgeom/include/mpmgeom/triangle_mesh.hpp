@@ -8,6 +8,7 @@
 #include <Eigen/Geometry>
 
 #include <cstddef>
+#include <cstdint>
 #include <filesystem>
 #include <stdexcept>
 #include <string>
@@ -49,10 +50,13 @@ struct ImportOptions {
   double weld_tolerance = 0.0;
   /// Parse the file in a child process (the default): assimp is a large parser of untrusted
   /// input, and a malformed file can make it abort, loop or allocate without bound. The child
-  /// is killed past a memory budget (64 times the file size, at least 4 GiB, at most 3/4 of the
-  /// machine) or a time budget (120 s + 1 s per MB), and any end of it other than a mesh is a
+  /// is killed past a memory budget (memory_budget_bytes) or a time budget (20 s + 1 s per MB of
+  /// CPU time, ten times that of wall clock), and any end of it other than a mesh is a
   /// MeshError. The fuzz target turns this off to see inside assimp.
   bool isolate = true;
+  /// The child's resident memory budget. 0 selects 64 times the file size, at least 4 GiB, at
+  /// most 3/4 of the machine; a given budget is also held to 3/4 of the machine.
+  std::uint64_t memory_budget_bytes = 0;
 
   /// True if the options can be used: scale finite and > 0, translation and rotation finite,
   /// weld_tolerance finite and >= 0. Otherwise false, and *why (if given) says which one.
