@@ -133,57 +133,149 @@ inline void transpose_into(const Eigen::SparseMatrix<double>& a, Eigen::SparseMa
 /// sparse matrix or as a diagonal, into C's storage and `w` (no allocation once they have held
 /// this much). C's pattern is X's and the product's together; columns sorted. The product is
 /// summed column by column (Gustavson), in another order than Eigen's product (round-off).
+/// Matrices compressed (as this file's functions make them).
+///
+/// C's pattern is first assumed to be that of the last call with `w` (the dual-grid couplings'
+/// products keep theirs while contact and the set of nodes with mass stay the same, though the
+/// patterns of A and B change more often): each column's terms go straight to their entries,
+/// found through a row -> entry map of that column; a term outside the pattern, or an entry no
+/// term reaches, sends the column to the general pass, which finds the pattern (marking the rows
+/// each column touches and sorting them: for Enhanced's three products on the floor scene most
+/// of their time, docs/performance.md, 2026-12-04, evening). Either way each entry sums its terms
+/// in the same order, so C is the same to the bit.
 inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::VectorXd* x_diagonal,
                          const Eigen::SparseMatrix<double>& a, const Eigen::VectorXd* s,
                          const Eigen::SparseMatrix<double>& b, Eigen::SparseMatrix<double>& c,
                          ProductWork& w) {
+  using Sparse = Eigen::SparseMatrix<double>;
   const Eigen::Index rows = a.cols(), cols = b.cols();
+  if (!a.isCompressed() || !b.isCompressed() || (x != nullptr && !x->isCompressed())) {
+    throw std::logic_error("product_into: a matrix is not compressed");
+  }
   transpose_into(a, w.lhs_rows);
-  const Eigen::SparseMatrix<double>& at = w.lhs_rows;
-  w.product.assign(static_cast<std::size_t>(rows), 0.0);
-  w.base.assign(static_cast<std::size_t>(rows), 0.0);
-  w.mark.assign(static_cast<std::size_t>(rows), -1);
-  w.inner.clear();
-  w.value.clear();
-  reshape(c, rows, cols);
-  int* outer = c.outerIndexPtr();
-  outer[0] = 0;
+  const Sparse& at = w.lhs_rows;
+  const int* at_outer = at.outerIndexPtr();
+  const int* at_inner = at.innerIndexPtr();
+  const double* at_value = at.valuePtr();
+  const int* b_outer = b.outerIndexPtr();
+  const int* b_inner = b.innerIndexPtr();
+  const double* b_value = b.valuePtr();
   const bool subtract = x != nullptr || x_diagonal != nullptr;
-  for (Eigen::Index j = 0; j < cols; ++j) {
-    w.touched.clear();
-    auto touch = [&](Eigen::Index i) {
-      const auto k = static_cast<std::size_t>(i);
-      if (w.mark[k] == j) return k;
-      w.mark[k] = static_cast<int>(j);
-      w.product[k] = 0.0;
-      w.base[k] = 0.0;
-      w.touched.push_back(static_cast<int>(i));
-      return k;
-    };
-    for (Eigen::SparseMatrix<double>::InnerIterator it(b, j); it; ++it) {
-      const double scale = s != nullptr ? (*s)[it.row()] : 1.0;
-      for (Eigen::SparseMatrix<double>::InnerIterator jt(at, it.row()); jt; ++jt) {
-        const double a_ri = s != nullptr ? jt.value() * scale : jt.value();
-        w.product[touch(jt.row())] += a_ri * it.value();
+  // Column j's terms, each handed to `term(i, a, b)` with its row in C, in the order the sums
+  // take them (the term is a b, added to the sum by std::fma: one rounding in both passes,
+  // whatever the compiler would contract); then X's entries to `entry(i, value)`.
+  auto for_each_term = [&](Eigen::Index j, auto&& term, auto&& entry) {
+    for (int eb = b_outer[j]; eb < b_outer[j + 1]; ++eb) {
+      const int r = b_inner[eb];
+      const double bv = b_value[eb];
+      if (s != nullptr) {
+        const double scale = (*s)[r];
+        for (int ea = at_outer[r]; ea < at_outer[r + 1]; ++ea) {
+          term(at_inner[ea], at_value[ea] * scale, bv);
+        }
+      } else {
+        for (int ea = at_outer[r]; ea < at_outer[r + 1]; ++ea) term(at_inner[ea], at_value[ea], bv);
       }
     }
     if (x != nullptr) {
-      for (Eigen::SparseMatrix<double>::InnerIterator it(*x, j); it; ++it) {
-        w.base[touch(it.row())] = it.value();
+      for (int ex = x->outerIndexPtr()[j]; ex < x->outerIndexPtr()[j + 1]; ++ex) {
+        entry(x->innerIndexPtr()[ex], x->valuePtr()[ex]);
       }
     }
-    if (x_diagonal != nullptr) w.base[touch(j)] = (*x_diagonal)[j];
-    std::sort(w.touched.begin(), w.touched.end());
-    for (const int i : w.touched) {
-      const auto k = static_cast<std::size_t>(i);
-      w.inner.push_back(i);
-      w.value.push_back(subtract ? w.base[k] - w.product[k] : w.product[k]);
+    if (x_diagonal != nullptr) entry(static_cast<int>(j), (*x_diagonal)[j]);
+  };
+  std::vector<int>& place = w.mark;  // row -> its entry in the column at hand (or an earlier one)
+  place.assign(static_cast<std::size_t>(rows), -1);
+
+  // The last call's pattern, if it still holds.
+  bool same = w.pattern_rows == rows && w.c_outer.size() == static_cast<std::size_t>(cols) + 1;
+  if (same) {
+    const std::size_t nnz = w.c_inner.size();
+    w.product.assign(nnz, 0.0);
+    w.base.assign(nnz, 0.0);
+    w.reached.assign(nnz, 0);
+    for (Eigen::Index j = 0; j < cols && same; ++j) {
+      const int first = w.c_outer[static_cast<std::size_t>(j)];
+      const int end = w.c_outer[static_cast<std::size_t>(j) + 1];
+      for (int e = first; e < end; ++e) place[static_cast<std::size_t>(w.c_inner[e])] = e;
+      bool outside = false;
+      for_each_term(
+          j,
+          [&](int i, double u, double v) {
+            const int e = place[static_cast<std::size_t>(i)];
+            if (e < first) {  // -1, or an earlier column's entry
+              outside = true;
+              return;
+            }
+            double& sum = w.product[static_cast<std::size_t>(e)];
+            sum = std::fma(u, v, sum);
+            w.reached[static_cast<std::size_t>(e)] = 1;
+          },
+          [&](int i, double v) {
+            const int e = place[static_cast<std::size_t>(i)];
+            if (e < first) {
+              outside = true;
+              return;
+            }
+            w.base[static_cast<std::size_t>(e)] = v;
+            w.reached[static_cast<std::size_t>(e)] = 1;
+          });
+      same = !outside && std::all_of(w.reached.begin() + first, w.reached.begin() + end,
+                                     [](char r) { return r != 0; });
     }
-    outer[j + 1] = static_cast<int>(w.inner.size());
+    if (!same) place.assign(static_cast<std::size_t>(rows), -1);
   }
-  c.resizeNonZeros(static_cast<Eigen::Index>(w.inner.size()));
-  std::copy(w.inner.begin(), w.inner.end(), c.innerIndexPtr());
-  std::copy(w.value.begin(), w.value.end(), c.valuePtr());
+  if (!same) {
+    // The general pass: column j's rows are those its terms and X's entries touch, sorted.
+    w.product.assign(static_cast<std::size_t>(rows), 0.0);
+    w.base.assign(static_cast<std::size_t>(rows), 0.0);
+    w.c_outer.assign(static_cast<std::size_t>(cols) + 1, 0);
+    w.c_inner.clear();
+    w.value.clear();
+    std::vector<int>& seen = w.touched;
+    for (Eigen::Index j = 0; j < cols; ++j) {
+      seen.clear();
+      auto touch = [&](int i) {
+        const auto k = static_cast<std::size_t>(i);
+        if (place[k] == j) return k;
+        place[k] = static_cast<int>(j);
+        w.product[k] = 0.0;
+        w.base[k] = 0.0;
+        seen.push_back(i);
+        return k;
+      };
+      for_each_term(
+          j,
+          [&](int i, double u, double v) {
+            double& sum = w.product[touch(i)];
+            sum = std::fma(u, v, sum);
+          },
+          [&](int i, double v) { w.base[touch(i)] = v; });
+      std::sort(seen.begin(), seen.end());
+      for (const int i : seen) {
+        const auto k = static_cast<std::size_t>(i);
+        w.c_inner.push_back(i);
+        w.value.push_back(subtract ? w.base[k] - w.product[k] : w.product[k]);
+      }
+      w.c_outer[static_cast<std::size_t>(j) + 1] = static_cast<int>(w.c_inner.size());
+    }
+    w.pattern_rows = rows;
+    // The next call's buffers, per entry of this pattern: allocated here, with the pattern.
+    for (auto* v : {&w.product, &w.base}) v->reserve(w.c_inner.size());
+    w.reached.reserve(w.c_inner.size());
+  }
+  const std::size_t nnz = w.c_inner.size();
+  reshape(c, rows, cols);
+  c.resizeNonZeros(static_cast<Eigen::Index>(nnz));
+  std::copy(w.c_outer.begin(), w.c_outer.end(), c.outerIndexPtr());
+  std::copy(w.c_inner.begin(), w.c_inner.end(), c.innerIndexPtr());
+  double* value = c.valuePtr();
+  if (!same) {
+    std::copy(w.value.begin(), w.value.end(), value);
+  } else {
+    for (std::size_t e = 0; e < nnz; ++e)
+      value[e] = subtract ? w.base[e] - w.product[e] : w.product[e];
+  }
 }
 
 /// x = A^-1 b for every column of b at once with the factorisation in `solver`: the operations

@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <random>
 #include <stdexcept>
 #include <vector>
@@ -291,6 +292,99 @@ TEST(SparseSolve, BlockSolveRefusesMoreThanThreeColumns) {
   Eigen::MatrixXd x;
   std::vector<double> work;
   EXPECT_THROW(ldlt_solve(solver, b, x, work), std::logic_error);
+}
+
+/// A random rows x cols sparse matrix with about `fill` of its entries set.
+Eigen::SparseMatrix<double> random_sparse(int rows, int cols, double fill, std::mt19937& rng) {
+  std::uniform_real_distribution<double> unit(0.0, 1.0), value(-1.0, 1.0);
+  std::vector<Eigen::Triplet<double>> entries;
+  for (int r = 0; r < rows; ++r) {
+    for (int c = 0; c < cols; ++c) {
+      if (unit(rng) < fill) entries.emplace_back(r, c, value(rng));
+    }
+  }
+  Eigen::SparseMatrix<double> m(rows, cols);
+  m.setFromTriplets(entries.begin(), entries.end());
+  return m;
+}
+
+/// a and b the same matrix: pattern and values, bit for bit.
+void expect_identical(const Eigen::SparseMatrix<double>& a, const Eigen::SparseMatrix<double>& b,
+                      const char* what) {
+  ASSERT_EQ(a.rows(), b.rows()) << what;
+  ASSERT_EQ(a.cols(), b.cols()) << what;
+  ASSERT_EQ(a.nonZeros(), b.nonZeros()) << what;
+  for (Eigen::Index c = 0; c <= a.cols(); ++c) {
+    ASSERT_EQ(a.outerIndexPtr()[c], b.outerIndexPtr()[c]) << what << ", column " << c;
+  }
+  for (Eigen::Index e = 0; e < a.nonZeros(); ++e) {
+    EXPECT_EQ(a.innerIndexPtr()[e], b.innerIndexPtr()[e]) << what << ", entry " << e;
+    EXPECT_EQ(a.valuePtr()[e], b.valuePtr()[e]) << what << ", entry " << e;
+  }
+}
+
+TEST(SparseSolve, ProductKeepsItsPatternOnlyWhileItHolds) {
+  // product_into() first tries the pattern of its last product. Through a sequence of calls
+  // with one scratch (new values on the same patterns; a term outside the pattern; an entry no
+  // term reaches any more; X as a matrix, a diagonal, or absent) each product must be the one a
+  // fresh scratch makes, pattern and values bit for bit, and that one X - A^T diag(s) B (to
+  // round-off: a few terms per entry of size about 1).
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> value(0.5, 2.0);
+  const int r = 50, n = 30, m = 20;
+  Eigen::SparseMatrix<double> a = random_sparse(r, n, 0.08, rng);
+  Eigen::SparseMatrix<double> b = random_sparse(r, m, 0.08, rng);
+  const Eigen::SparseMatrix<double> x = random_sparse(n, m, 0.05, rng);
+  Eigen::VectorXd s(r), d(m);
+  for (Eigen::Index i = 0; i < r; ++i) s[i] = value(rng);
+  for (Eigen::Index i = 0; i < m; ++i) d[i] = value(rng);
+  ProductWork kept;
+  Eigen::SparseMatrix<double> c, fresh;
+  auto check = [&](const Eigen::SparseMatrix<double>* with_x, const Eigen::VectorXd* with_d,
+                   const char* what) {
+    product_into(with_x, with_d, a, &s, b, c, kept);
+    ProductWork scratch;
+    product_into(with_x, with_d, a, &s, b, fresh, scratch);
+    expect_identical(c, fresh, what);
+    // X - A^T diag(s) B, or A^T diag(s) B when X is absent.
+    const Eigen::MatrixXd product =
+        Eigen::MatrixXd(a).transpose() * s.asDiagonal() * Eigen::MatrixXd(b);
+    Eigen::MatrixXd reference = with_x == nullptr && with_d == nullptr ? product : -product;
+    if (with_x != nullptr) reference += Eigen::MatrixXd(*with_x);
+    if (with_d != nullptr) reference.diagonal().head(m) += *with_d;
+    EXPECT_LE((Eigen::MatrixXd(c) - reference).norm(), 1e-14 * reference.norm()) << what;
+  };
+  check(&x, nullptr, "first product");
+  for (auto* v : {&a, &b}) {
+    for (Eigen::Index e = 0; e < v->nonZeros(); ++e) v->valuePtr()[e] *= value(rng);
+  }
+  check(&x, nullptr, "new values");
+  // A term outside the pattern: a new entry of B whose row meets a column of A^T that does not
+  // reach the product's column yet.
+  std::vector<Eigen::Triplet<double>> entries;
+  for (Eigen::Index col = 0; col < b.outerSize(); ++col) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(b, col); it; ++it) {
+      entries.emplace_back(static_cast<int>(it.row()), static_cast<int>(col), it.value());
+    }
+  }
+  const std::size_t before = c.nonZeros();
+  entries.emplace_back(r - 1, 0, 1.5);
+  entries.emplace_back(0, m - 1, -0.5);
+  b.setFromTriplets(entries.begin(), entries.end());
+  check(&x, nullptr, "pattern grown");
+  EXPECT_GE(static_cast<std::size_t>(c.nonZeros()), before);
+  // Entries no term reaches any more: B loses its first column's entries.
+  entries.erase(
+      std::remove_if(entries.begin(), entries.end(), [](const auto& t) { return t.col() == 0; }),
+      entries.end());
+  const std::size_t grown = c.nonZeros();
+  b.setFromTriplets(entries.begin(), entries.end());
+  check(&x, nullptr, "pattern shrunk");
+  EXPECT_LT(static_cast<std::size_t>(c.nonZeros()), grown);
+  check(nullptr, &d, "X a diagonal");
+  check(nullptr, &d, "X a diagonal, again");
+  check(nullptr, nullptr, "no X");
+  check(nullptr, nullptr, "no X, again");
 }
 
 TEST(SparseSolve, AssemblyByColumnsEqualsSetFromTriplets) {

@@ -77,12 +77,15 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   bool split_stale_ = true;
 };
 
-/// Scratch of product_into() (sparse_pattern.hpp), kept between calls.
+/// Scratch of product_into() (sparse_pattern.hpp), kept between calls, with the pattern of
+/// the product it made last.
 struct ProductWork {
   Eigen::SparseMatrix<double> lhs_rows;  ///< A^T
-  std::vector<double> product, base;
-  std::vector<int> mark, touched, inner;
-  std::vector<double> value;
+  std::vector<double> product, base, value;
+  std::vector<int> mark, touched;
+  std::vector<char> reached;  ///< entries of the last pattern a term or X has reached
+  Eigen::Index pattern_rows = -1;
+  std::vector<int> c_outer, c_inner;  ///< the last product's pattern (empty: none yet)
 };
 
 /// Scratch of refined_solve() (sparse_pattern.hpp) for right-hand sides of type Rhs.
