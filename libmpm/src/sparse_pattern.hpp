@@ -139,8 +139,8 @@ inline void transpose_into(const Eigen::SparseMatrix<double>& a, Eigen::SparseMa
 /// products keep theirs while contact and the set of nodes with mass stay the same, though the
 /// patterns of A and B change more often): each column's terms go straight to their entries,
 /// found through a row -> entry map of that column; a term outside the pattern, or an entry no
-/// term reaches, sends the column to the general pass, which finds the pattern (marking the rows
-/// each column touches and sorting them: for Enhanced's three products on the floor scene most
+/// term reaches, sends the whole call to the general pass, which finds the pattern (marking the
+/// rows each column touches and sorting them: for Enhanced's three products on the floor scene most
 /// of their time, docs/performance.md, 2026-12-04, evening). Either way each entry sums its terms
 /// in the same order, so C is the same to the bit.
 inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::VectorXd* x_diagonal,

@@ -82,6 +82,8 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
 struct ProductWork {
   Eigen::SparseMatrix<double> lhs_rows;  ///< A^T
   std::vector<double> product, base, value;
+  /// Per row of C: the column that last touched it (general pass), or its entry in the column
+  /// at hand (pattern kept); the rows one column touches.
   std::vector<int> mark, touched;
   std::vector<char> reached;  ///< entries of the last pattern a term or X has reached
   Eigen::Index pattern_rows = -1;
