@@ -372,9 +372,7 @@ void Solver<D>::setup_dual_walls() {
     const Index<D> lo = (i.array() + below).max(0).matrix();
     const Index<D> hi = (i.array() + above).min(cells.array() - 1).matrix();
     for_each_in_box(lo, hi, [&](const Index<D>& c) {
-      long cell = 0;
-      for (int d = 0; d < D; ++d) cell = cell * cells[d] + c[d];
-      coupled_cell_[static_cast<std::size_t>(cell)] = 1;
+      coupled_cell_[static_cast<std::size_t>(lattice_offset<D>(c, cells))] = 1;
     });
   };
   for (const DualWall<D>& w : dual_) {

@@ -261,7 +261,8 @@ inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::Vect
     }
     w.pattern_rows = rows;
     // The next call's buffers, per entry of this pattern: allocated here, with the pattern.
-    for (auto* v : {&w.product, &w.base}) v->reserve(w.c_inner.size());
+    w.product.reserve(w.c_inner.size());
+    w.base.reserve(w.c_inner.size());
     w.reached.reserve(w.c_inner.size());
   }
   const std::size_t nnz = w.c_inner.size();

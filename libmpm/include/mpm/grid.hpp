@@ -250,14 +250,8 @@ struct Grid {
     return n;
   }
   [[nodiscard]] Index<D> multi(int linear_index) const {
+    if (!sparse) return lattice_index<D>(linear_index, nodes);
     Index<D> i;
-    if (!sparse) {
-      for (int d = D - 1; d >= 0; --d) {
-        i[d] = linear_index % nodes[d];
-        linear_index /= nodes[d];
-      }
-      return i;
-    }
     const long block = linear_index / kBlockNodes;
     int local = linear_index % kBlockNodes;
     for (int d = D - 1; d >= 0; --d) {
@@ -306,9 +300,7 @@ struct Grid {
 
   /// Linear index of the block with per-axis indices b (last axis fastest, as nodes).
   [[nodiscard]] int block_index(const Index<D>& b) const {
-    int linear_block = 0;
-    for (int d = 0; d < D; ++d) linear_block = linear_block * blocks[d] + b[d];
-    return linear_block;
+    return static_cast<int>(lattice_offset<D>(b, blocks));
   }
   /// The block holding a node.
   [[nodiscard]] int block_of(int node) const {

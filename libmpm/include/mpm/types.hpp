@@ -24,6 +24,15 @@ Index<D> lattice_index(long at, const Index<D>& size) {
   return i;
 }
 
+/// The entry of multi-index i in a lattice with `size` points per axis, last axis fastest
+/// (lattice_index()'s inverse).
+template <int D>
+long lattice_offset(const Index<D>& i, const Index<D>& size) {
+  long at = 0;
+  for (int d = 0; d < D; ++d) at = at * size[d] + i[d];
+  return at;
+}
+
 /// f(i) for every multi-index i with lo <= i <= hi (each axis, inclusive), last axis fastest;
 /// nothing if the box is empty along an axis.
 template <int D, class F>
