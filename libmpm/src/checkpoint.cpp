@@ -1,8 +1,5 @@
 #include "mpm/checkpoint.hpp"
 
-#include <fcntl.h>
-#include <unistd.h>
-
 #include <stdexcept>
 
 #include "hdf5_util.hpp"
@@ -24,17 +21,6 @@ const typename Map::mapped_type& lookup(const Map& map, const std::string& key, 
     }
   }
   return it->second;
-}
-
-// Asks the kernel to put a file (or a directory's entries) on the disk: H5Fflush hands the data
-// to the operating system only, so a power cut after the rename could leave a checkpoint whose
-// name is there and whose contents are not.
-bool sync_to_disk(const std::filesystem::path& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) return false;
-  const bool synced = ::fsync(fd) == 0;
-  ::close(fd);
-  return synced;
 }
 
 }  // namespace

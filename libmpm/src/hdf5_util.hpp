@@ -2,7 +2,9 @@
 // HDF5 and XDMF helpers shared by the particle output and the boundary package (internal to
 // libmpm: HDF5 never appears in a public header).
 
+#include <fcntl.h>
 #include <hdf5.h>
+#include <unistd.h>
 
 #include <array>
 #include <charconv>
@@ -18,7 +20,7 @@ inline std::string quoted(const std::filesystem::path& path) { return "'" + path
 // Owns one HDF5 identifier so every early return and exception closes it.
 class Handle {
  public:
-  Handle(hid_t id, herr_t (*close)(hid_t)) : id_(id), close_(close) {}
+  Handle(hid_t id, herr_t (*closer)(hid_t)) : id_(id), close_(closer) {}
   Handle(Handle&& other) noexcept
       : id_(std::exchange(other.id_, H5I_INVALID_HID)), close_(other.close_) {}
   Handle& operator=(Handle&& other) noexcept {
@@ -31,11 +33,27 @@ class Handle {
   }
   [[nodiscard]] hid_t get() const { return id_; }
   [[nodiscard]] bool ok() const { return id_ >= 0; }
+  /// Closes now and reports whether that worked (closing a file writes what HDF5 still holds).
+  bool close() {
+    const hid_t id = std::exchange(id_, H5I_INVALID_HID);
+    return id < 0 || close_(id) >= 0;
+  }
 
  private:
   hid_t id_;
   herr_t (*close_)(hid_t);
 };
+
+// Asks the kernel to put a file (or a directory's entries) on the disk: closing or flushing an
+// HDF5 file hands the data to the operating system only, so a power cut after a rename could
+// leave a file whose name is there and whose contents are not.
+inline bool sync_to_disk(const std::filesystem::path& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return false;
+  const bool synced = ::fsync(fd) == 0;
+  ::close(fd);
+  return synced;
+}
 
 // HDF5 prints an error stack to stderr by default; our exceptions carry the one line users need.
 inline void silence_hdf5() { H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr); }
@@ -69,8 +87,12 @@ inline bool write_dataset(hid_t group, const char* name, hid_t file_type, hid_t 
   const std::array<hsize_t, 2> dims{count, components};
   const Handle space(H5Screate_simple(components == 1 ? 1 : 2, dims.data(), nullptr), H5Sclose);
   if (!space.ok()) return false;
+  // No modification times in the object headers (HDF5 records them by default): the same data
+  // make the same file, so two runs' outputs compare byte for byte.
+  const Handle create(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
+  if (!create.ok() || H5Pset_obj_track_times(create.get(), 0) < 0) return false;
   const Handle set(
-      H5Dcreate2(group, name, file_type, space.get(), H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
+      H5Dcreate2(group, name, file_type, space.get(), H5P_DEFAULT, create.get(), H5P_DEFAULT),
       H5Dclose);
   if (!set.ok()) return false;
   // An empty vector may have a null data(); HDF5 rejects a null buffer, and there is nothing to

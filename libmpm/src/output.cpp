@@ -7,6 +7,7 @@
 #include <charconv>
 #include <cstdio>
 #include <fstream>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <system_error>
@@ -64,18 +65,38 @@ void check_sizes(const ParticleFrame& frame) {
   check(frame.body.size() == n, "body");
 }
 
+// Frame files are named by their index: NNNNNN.h5 (six digits, more once a run outgrows them).
+// Returns the index, or nothing for any other name.
+std::optional<std::size_t> frame_index(const std::string& file_name) {
+  const std::size_t digits = file_name.size() - std::min<std::size_t>(file_name.size(), 3);
+  if (digits < 6 || file_name.compare(digits, 3, ".h5") != 0) return std::nullopt;
+  std::size_t index = 0;
+  const auto [end, error] = std::from_chars(file_name.data(), file_name.data() + digits, index);
+  if (error != std::errc{} || end != file_name.data() + digits) return std::nullopt;
+  return index;
+}
+
+// The directory of the frame files: OUT.h5's name without the extension, beside it.
+std::filesystem::path frame_directory(const std::filesystem::path& h5_path) {
+  return h5_path.parent_path() / h5_path.stem();
+}
+
 }  // namespace
 
 struct ParticleWriter::Impl {
-  std::filesystem::path h5_path;
+  std::filesystem::path h5_path;    // the index: /frames/NNNNNN, external links to the frames
+  std::filesystem::path frame_dir;  // one file per frame, NNNNNN.h5
   std::filesystem::path xmf_path;
-  std::string h5_ref;  // h5 file as seen from the xmf's directory, XML-escaped
-  Handle file{H5I_INVALID_HID, H5Fclose};
-  std::string grids;  // XDMF <Grid> blocks of all frames so far; the index is rebuilt from this
+  std::string frame_ref;  // frame_dir as seen from the xmf's directory, XML-escaped
+  std::string grids;      // XDMF <Grid> blocks of all frames so far; the index is rebuilt from this
   std::size_t frames = 0;
 
   Impl(std::filesystem::path h5, std::filesystem::path xmf)
-      : h5_path(std::move(h5)), xmf_path(std::move(xmf)) {}
+      : h5_path(std::move(h5)), frame_dir(frame_directory(h5_path)), xmf_path(std::move(xmf)) {}
+
+  [[nodiscard]] std::filesystem::path frame_file(std::size_t index) const {
+    return frame_dir / (frame_name(index) + ".h5");
+  }
 
   std::string data_item(const std::string& group, const char* name, std::size_t count,
                         std::size_t components, bool is_int) const {
@@ -83,7 +104,7 @@ struct ParticleWriter::Impl {
     if (components > 1) dims += " " + std::to_string(components);
     return "          <DataItem Dimensions=\"" + dims + "\" NumberType=\"" +
            (is_int ? R"(Int" Precision="4")" : R"(Float" Precision="8")") + R"( Format="HDF">)" +
-           h5_ref + ":/frames/" + group + "/" + name + "</DataItem>\n";
+           frame_ref + "/" + group + ".h5:/" + name + "</DataItem>\n";
   }
 
   std::string attribute(const std::string& group, const char* name, const char* type,
@@ -115,9 +136,9 @@ struct ParticleWriter::Impl {
     std::filesystem::path dir = xmf_path.parent_path();
     if (dir.empty()) dir = ".";
     std::error_code error;
-    std::filesystem::path ref = std::filesystem::relative(h5_path, dir, error);
-    if (error || ref.empty()) ref = std::filesystem::absolute(h5_path);
-    h5_ref = xml_escape(ref.generic_string());
+    std::filesystem::path ref = std::filesystem::relative(frame_dir, dir, error);
+    if (error || ref.empty()) ref = std::filesystem::absolute(frame_dir);
+    frame_ref = xml_escape(ref.generic_string());
   }
 
   // Written aside and renamed over the old index so a reader never sees a half-written file.
@@ -138,25 +159,89 @@ struct ParticleWriter::Impl {
     if (error) throw std::runtime_error("cannot write XDMF file " + quoted(xmf_path));
   }
 
-  void write_frame(const ParticleFrame& frame, const std::string& group) {
-    const Handle g(
-        H5Gcreate2(file.get(), ("/frames/" + group).c_str(), H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
-        H5Gclose);
-    const hid_t id = g.get();
-    const std::size_t n = frame.count;
-    const bool good =
-        g.ok() && write_attribute(id, "time", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.time) &&
-        write_attribute(id, "step", H5T_STD_I64LE, H5T_NATIVE_INT64, frame.step) &&
-        write_dataset(id, "position", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.position.data(), n,
-                      3) &&
-        write_dataset(id, "velocity", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.velocity.data(), n,
-                      3) &&
-        write_dataset(id, "stress", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.stress.data(), n, 9) &&
-        write_dataset(id, "mass", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.mass.data(), n, 1) &&
-        write_dataset(id, "volume", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.volume.data(), n, 1) &&
-        write_dataset(id, "material", H5T_STD_I32LE, H5T_NATIVE_INT, frame.material.data(), n, 1) &&
-        write_dataset(id, "body", H5T_STD_I32LE, H5T_NATIVE_INT, frame.body.data(), n, 1);
-    if (!good) throw std::runtime_error("cannot write frame to HDF5 file " + quoted(h5_path));
+  // The HDF5 index of the first `count` frames, written aside and renamed over the old one like
+  // the XDMF index: HDF5 updates a file in place, and a process killed while it does (or while
+  // freed space is reused before a flush) can leave the file's links pointing at garbage. So no
+  // HDF5 file is ever changed once written: a frame file is complete or absent, and the index is
+  // the old one or the new one, whatever moment a run is killed at.
+  void write_index(std::size_t count) const {
+    std::filesystem::path tmp = h5_path;
+    tmp += ".tmp";
+    const std::string dir = frame_dir.filename().generic_string();
+    bool good = false;
+    {
+      Handle file(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
+      if (!file.ok()) throw std::runtime_error("cannot create HDF5 file " + quoted(h5_path));
+      Handle group(H5Gcreate2(file.get(), "/frames", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
+                   H5Gclose);
+      good = group.ok();
+      for (std::size_t i = 0; good && i < count; ++i) {
+        const std::string name = frame_name(i);
+        good = H5Lcreate_external((dir + "/" + name + ".h5").c_str(), "/", group.get(),
+                                  name.c_str(), H5P_DEFAULT, H5P_DEFAULT) >= 0;
+      }
+      good = group.close() && good;
+      good = file.close() && good;
+    }
+    std::error_code error;
+    if (good) std::filesystem::rename(tmp, h5_path, error);
+    if (!good || error) {
+      std::filesystem::remove(tmp, error);
+      throw std::runtime_error("cannot write HDF5 file " + quoted(h5_path));
+    }
+  }
+
+  // Written to NNNNNN.h5.tmp and renamed when complete, on the disk before the checkpoint that
+  // counts it (written after it) is: a resume after a power cut finds every frame it needs.
+  void write_frame(const ParticleFrame& frame, const std::filesystem::path& path) const {
+    std::filesystem::path tmp = path;
+    tmp += ".tmp";
+    bool good = false;
+    {
+      Handle file(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
+      const hid_t id = file.get();
+      const std::size_t n = frame.count;
+      good =
+          file.ok() && write_attribute(id, "time", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.time) &&
+          write_attribute(id, "step", H5T_STD_I64LE, H5T_NATIVE_INT64, frame.step) &&
+          write_dataset(id, "position", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.position.data(), n,
+                        3) &&
+          write_dataset(id, "velocity", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.velocity.data(), n,
+                        3) &&
+          write_dataset(id, "stress", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.stress.data(), n,
+                        9) &&
+          write_dataset(id, "mass", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.mass.data(), n, 1) &&
+          write_dataset(id, "volume", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.volume.data(), n,
+                        1) &&
+          write_dataset(id, "material", H5T_STD_I32LE, H5T_NATIVE_INT, frame.material.data(), n,
+                        1) &&
+          write_dataset(id, "body", H5T_STD_I32LE, H5T_NATIVE_INT, frame.body.data(), n, 1);
+      good = file.close() && good && sync_to_disk(tmp);
+    }
+    std::error_code error;
+    if (good) std::filesystem::rename(tmp, path, error);
+    if (!good || error || !sync_to_disk(frame_dir)) {
+      std::filesystem::remove(tmp, error);
+      throw std::runtime_error("cannot write frame file " + quoted(path));
+    }
+  }
+
+  // Frame files numbered `first` or later, and unfinished ones (*.tmp), in the frame directory.
+  void remove_frames_from(std::size_t first) const {
+    std::error_code error;
+    std::vector<std::filesystem::path> stale;
+    for (const auto& entry : std::filesystem::directory_iterator(frame_dir, error)) {
+      const std::string name = entry.path().filename().string();
+      const std::optional<std::size_t> index = frame_index(name);
+      const bool unfinished = name.size() > 7 && name.compare(name.size() - 7, 7, ".h5.tmp") == 0;
+      if ((index && *index >= first) || unfinished) stale.push_back(entry.path());
+    }
+    if (error) throw std::runtime_error("cannot list directory " + quoted(frame_dir));
+    for (const auto& path : stale) {
+      if (!std::filesystem::remove(path, error) && error) {
+        throw std::runtime_error("cannot remove frame file " + quoted(path));
+      }
+    }
   }
 };
 
@@ -165,13 +250,12 @@ ParticleWriter::ParticleWriter(const std::filesystem::path& h5_path,
     : impl_(std::make_unique<Impl>(h5_path, xmf_path)) {
   silence_hdf5();
   Impl& im = *impl_;
-  im.file = Handle(H5Fcreate(h5_path.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
-  if (!im.file.ok()) throw std::runtime_error("cannot create HDF5 file " + quoted(h5_path));
-  const Handle frames(H5Gcreate2(im.file.get(), "/frames", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
-                      H5Gclose);
-  if (!frames.ok() || H5Fflush(im.file.get(), H5F_SCOPE_GLOBAL) < 0) {
-    throw std::runtime_error("cannot write HDF5 file " + quoted(h5_path));
-  }
+  std::error_code error;
+  // Not create_directories: a missing output directory is the caller's error, not ours to make.
+  std::filesystem::create_directory(im.frame_dir, error);
+  if (error) throw std::runtime_error("cannot create HDF5 file " + quoted(h5_path));
+  im.remove_frames_from(0);  // an earlier run's, as the index is truncated
+  im.write_index(0);
   im.set_reference();
   im.write_xmf();
 }
@@ -181,39 +265,27 @@ ParticleWriter::ParticleWriter(const std::filesystem::path& h5_path,
     : impl_(std::make_unique<Impl>(h5_path, xmf_path)) {
   silence_hdf5();
   Impl& im = *impl_;
-  im.file = Handle(H5Fopen(h5_path.c_str(), H5F_ACC_RDWR, H5P_DEFAULT), H5Fclose);
-  if (!im.file.ok()) throw std::runtime_error("cannot open HDF5 file " + quoted(h5_path));
-  const std::vector<std::string> names = frame_names(im.file.get(), h5_path);
-  if (names.size() < keep_frames) {
-    throw std::runtime_error("HDF5 file " + quoted(h5_path) + " holds " +
-                             std::to_string(names.size()) + " frames, the checkpoint " +
-                             std::to_string(keep_frames));
-  }
-  for (std::size_t i = keep_frames; i < names.size(); ++i) {
-    if (H5Ldelete(im.file.get(), ("/frames/" + names[i]).c_str(), H5P_DEFAULT) < 0) {
-      throw std::runtime_error("cannot write HDF5 file " + quoted(h5_path));
-    }
-  }
   im.set_reference();
   for (std::size_t i = 0; i < keep_frames; ++i) {
-    // The index needs each frame's time and particle count only.
-    const Handle g(H5Gopen2(im.file.get(), ("/frames/" + names[i]).c_str(), H5P_DEFAULT), H5Gclose);
+    // The XDMF index needs each frame's time and particle count only.
+    const std::filesystem::path path = im.frame_file(i);
+    const Handle file(H5Fopen(path.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose);
     ParticleFrame header;
-    const Handle set(g.ok() ? H5Dopen2(g.get(), "mass", H5P_DEFAULT) : H5I_INVALID_HID, H5Dclose);
+    const Handle set(file.ok() ? H5Dopen2(file.get(), "mass", H5P_DEFAULT) : H5I_INVALID_HID,
+                     H5Dclose);
     const Handle space(set.ok() ? H5Dget_space(set.get()) : H5I_INVALID_HID, H5Sclose);
     hsize_t count = 0;
-    if (!space.ok() || !read_attribute(g.get(), "time", H5T_NATIVE_DOUBLE, header.time) ||
+    if (!space.ok() || !read_attribute(file.get(), "time", H5T_NATIVE_DOUBLE, header.time) ||
         H5Sget_simple_extent_dims(space.get(), &count, nullptr) != 1) {
-      throw std::runtime_error("cannot read frame /frames/" + names[i] + " from HDF5 file " +
-                               quoted(h5_path));
+      throw std::runtime_error("cannot read frame file " + quoted(path) + " (the checkpoint has " +
+                               std::to_string(keep_frames) + " frames)");
     }
     header.count = count;
-    im.append_grid(header, names[i]);
+    im.append_grid(header, frame_name(i));
   }
+  im.remove_frames_from(keep_frames);  // written after the checkpoint
+  im.write_index(keep_frames);
   im.frames = keep_frames;
-  if (H5Fflush(im.file.get(), H5F_SCOPE_GLOBAL) < 0) {
-    throw std::runtime_error("cannot write HDF5 file " + quoted(h5_path));
-  }
   im.write_xmf();
 }
 
@@ -223,19 +295,10 @@ void ParticleWriter::write(const ParticleFrame& frame) {
   check_sizes(frame);
   silence_hdf5();
   Impl& im = *impl_;
-  const std::string group = frame_name(im.frames);
-  try {
-    im.write_frame(frame, group);
-  } catch (...) {
-    // Drop the partial group so a retry can reuse the name and readers never see half a frame.
-    H5Ldelete(im.file.get(), ("/frames/" + group).c_str(), H5P_DEFAULT);
-    throw;
-  }
-  if (H5Fflush(im.file.get(), H5F_SCOPE_GLOBAL) < 0) {
-    throw std::runtime_error("cannot flush HDF5 file " + quoted(im.h5_path));
-  }
+  im.write_frame(frame, im.frame_file(im.frames));
+  im.write_index(im.frames + 1);
   ++im.frames;
-  im.append_grid(frame, group);
+  im.append_grid(frame, frame_name(im.frames - 1));
   im.write_xmf();
 }
 
@@ -265,8 +328,11 @@ ParticleFrame read_frame(const std::filesystem::path& h5_path, std::size_t index
       read_dataset(id, "body", H5T_NATIVE_INT, 1, counts[6], frame.body) &&
       std::all_of(counts.begin(), counts.end(), [&](std::size_t c) { return c == counts[0]; });
   if (!good) {
-    throw std::runtime_error("cannot read frame /frames/" + names[index] + " from HDF5 file " +
-                             quoted(h5_path));
+    // Its data are in the frame file the link names (runs before the frame files held them in
+    // the group itself, which reads the same way).
+    throw std::runtime_error("cannot read frame /frames/" + names[index] + " of HDF5 file " +
+                             quoted(h5_path) + " (frame file " +
+                             quoted(frame_directory(h5_path) / (names[index] + ".h5")) + ")");
   }
   frame.count = counts[0];
   return frame;

@@ -464,7 +464,8 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       std::cerr << "mpm: " << out.string() << ": " << e.what() << '\n';
       return kExitBadInput;
     }
-  } else if (fs::exists(out / "summary.json", ec) || fs::exists(out / "particles.h5", ec)) {
+  } else if (fs::exists(out / "summary.json", ec) || fs::exists(out / "particles.h5", ec) ||
+             fs::exists(out / "particles", ec)) {
     if (!options.overwrite) {
       std::cerr << "mpm: " << out.string()
                 << ": holds an earlier result; choose another directory, pass --overwrite, or "
@@ -487,10 +488,10 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   try {
     if (options.resume) {
       sim->restore_state(resume);
-      first = read_frame(out / "particles.h5", 0);
       writer = std::make_unique<ParticleWriter>(
           out / "particles.h5", out / "particles.xmf",
           static_cast<std::size_t>(resume.integer("run.frames", 1)[0]));
+      first = read_frame(out / "particles.h5", 0);  // through the index the writer rebuilt
       history = std::make_unique<History>(
           out / "history.csv", scene, *sim,
           static_cast<std::uintmax_t>(resume.integer("run.history_bytes", 1)[0]));

@@ -136,7 +136,7 @@ TEST_F(ParticleWriter, XdmfIndexesEveryFrame) {
   for (const char* frame : {"000000", "000001", "000002"}) {
     for (const char* set :
          {"position", "velocity", "stress", "mass", "volume", "material", "body"}) {
-      const std::string ref = std::string(">particles.h5:/frames/") + frame + "/" + set + "<";
+      const std::string ref = std::string(">particles/") + frame + ".h5:/" + set + "<";
       EXPECT_EQ(occurrences(xmf, ref), 1U) << ref;
     }
   }
@@ -150,7 +150,7 @@ TEST_F(ParticleWriter, XdmfReferencesH5RelativeToItsOwnDirectory) {
   mpm::ParticleWriter writer(dir_ / "data" / "run.h5", dir_ / "run.xmf");
   writer.write(make_frame(2, 1.0, 1));
   const std::string xmf = slurp(dir_ / "run.xmf");
-  EXPECT_NE(xmf.find(">data/run.h5:/frames/000000/position<"), std::string::npos) << xmf;
+  EXPECT_NE(xmf.find(">data/run/000000.h5:/position<"), std::string::npos) << xmf;
 }
 
 TEST_F(ParticleWriter, MissingDirectoryThrowsNamingTheFile) {
@@ -204,4 +204,104 @@ TEST_F(ParticleWriter, SizeMismatchThrowsInvalidArgumentAndWritesNothing) {
   EXPECT_EQ(writer.frames_written(), 1U);
   ASSERT_EQ(mpm::count_frames(h5), 1U);
   expect_equal(mpm::read_frame(h5, 0), good);
+}
+
+// The frames are one file each (particles/NNNNNN.h5, written aside and renamed) and particles.h5
+// is an index of external links rewritten the same way, so the output can be moved as a whole
+// and read from anywhere: the links resolve against the index's own directory.
+TEST_F(ParticleWriter, OutputReadsBackAfterTheDirectoryIsMoved) {
+  const std::vector<mpm::ParticleFrame> frames = {make_frame(3, 0.0, 0), make_frame(3, 0.5, 4)};
+  fs::create_directories(dir_ / "run");
+  {
+    mpm::ParticleWriter writer(dir_ / "run" / "particles.h5", dir_ / "run" / "particles.xmf");
+    for (const auto& f : frames) writer.write(f);
+  }
+  EXPECT_TRUE(fs::exists(dir_ / "run" / "particles" / "000001.h5"));
+  EXPECT_FALSE(fs::exists(dir_ / "run" / "particles" / "000001.h5.tmp"));
+  EXPECT_FALSE(fs::exists(dir_ / "run" / "particles.h5.tmp"));
+  fs::rename(dir_ / "run", dir_ / "moved");
+  const fs::path h5 = dir_ / "moved" / "particles.h5";
+  ASSERT_EQ(mpm::count_frames(h5), 2U);
+  for (std::size_t i = 0; i < frames.size(); ++i) expect_equal(mpm::read_frame(h5, i), frames[i]);
+}
+
+// What a run killed at any moment leaves, and its resume from a checkpoint taken after frame 2:
+// a frame written after the checkpoint, a half-written frame file and a half-written index
+// beside the one the last frame left. The resumed writer keeps frames 0-2, drops the rest, and
+// goes on from index 3.
+TEST_F(ParticleWriter, ResumeKeepsTheCheckpointsFramesWhateverAKillLeft) {
+  const fs::path h5 = dir_ / "particles.h5";
+  const fs::path frames_dir = dir_ / "particles";
+  std::vector<mpm::ParticleFrame> frames;
+  {
+    mpm::ParticleWriter writer(h5, dir_ / "particles.xmf");
+    for (std::int64_t k = 0; k < 4; ++k) {
+      frames.push_back(make_frame(4, 0.1 * static_cast<double>(k), k));
+      writer.write(frames.back());
+    }
+  }
+  std::ofstream(frames_dir / "000004.h5.tmp") << "half a frame";
+  std::ofstream(dir_ / "particles.h5.tmp") << "half an index";
+  {
+    mpm::ParticleWriter writer(h5, dir_ / "particles.xmf", 3);
+    EXPECT_EQ(writer.frames_written(), 3U);
+    EXPECT_EQ(mpm::count_frames(h5), 3U);
+    EXPECT_FALSE(fs::exists(frames_dir / "000003.h5"));
+    EXPECT_FALSE(fs::exists(frames_dir / "000004.h5.tmp"));
+    frames[3] = make_frame(2, 0.35, 9);
+    writer.write(frames[3]);
+  }
+  ASSERT_EQ(mpm::count_frames(h5), 4U);
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    SCOPED_TRACE("frame " + std::to_string(i));
+    expect_equal(mpm::read_frame(h5, i), frames[i]);
+  }
+  const std::string xmf = slurp(dir_ / "particles.xmf");
+  EXPECT_EQ(occurrences(xmf, "GridType=\"Uniform\""), 4U);
+  EXPECT_NE(xmf.find("<Time Value=\"0.35\"/>"), std::string::npos);
+  EXPECT_EQ(xmf.find("<Time Value=\"0.30000000000000004\"/>"), std::string::npos);
+
+  // Even an index destroyed outright is rebuilt: the frame files are what the resume needs.
+  std::ofstream(h5, std::ios::trunc) << "not HDF5";
+  mpm::ParticleWriter again(h5, dir_ / "particles.xmf", 2);
+  EXPECT_EQ(mpm::count_frames(h5), 2U);
+  expect_equal(mpm::read_frame(h5, 1), frames[1]);
+}
+
+TEST_F(ParticleWriter, ResumeWithoutTheCheckpointsFramesThrowsNamingTheFrameFile) {
+  const fs::path h5 = dir_ / "particles.h5";
+  {
+    mpm::ParticleWriter writer(h5, dir_ / "particles.xmf");
+    writer.write(make_frame(2, 0.0, 0));
+    writer.write(make_frame(2, 0.1, 1));
+  }
+  const fs::path lost = dir_ / "particles" / "000001.h5";
+  fs::remove(lost);
+  try {
+    mpm::ParticleWriter writer(h5, dir_ / "particles.xmf", 2);
+    FAIL() << "expected std::runtime_error";
+  } catch (const std::runtime_error& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find(lost.string()), std::string::npos) << what;
+    EXPECT_EQ(what.find('\n'), std::string::npos) << what;
+  }
+  EXPECT_EQ(mpm::count_frames(h5), 2U) << "a refused resume leaves the index as it was";
+  EXPECT_THROW((void)mpm::read_frame(h5, 1), std::runtime_error);
+}
+
+// A new writer truncates: an earlier run's frame files go with its index.
+TEST_F(ParticleWriter, NewWriterDropsAnEarlierRunsFrames) {
+  const fs::path h5 = dir_ / "particles.h5";
+  {
+    mpm::ParticleWriter writer(h5, dir_ / "particles.xmf");
+    for (int k = 0; k < 3; ++k) writer.write(make_frame(1, k, k));
+  }
+  std::ofstream(dir_ / "particles" / "notes.txt") << "the user's";
+  mpm::ParticleWriter writer(h5, dir_ / "particles.xmf");
+  writer.write(make_frame(2, 0.0, 0));
+  EXPECT_EQ(mpm::count_frames(h5), 1U);
+  EXPECT_TRUE(fs::exists(dir_ / "particles" / "000000.h5"));
+  EXPECT_FALSE(fs::exists(dir_ / "particles" / "000001.h5"));
+  EXPECT_FALSE(fs::exists(dir_ / "particles" / "000002.h5"));
+  EXPECT_TRUE(fs::exists(dir_ / "particles" / "notes.txt"));
 }

@@ -783,7 +783,8 @@ TEST_F(CommandLine, RefusesToOverwriteEarlierResult) {
 }
 
 TEST_F(CommandLine, RefusesToOverwriteParticlesOfAnInterruptedRun) {
-  // A killed run leaves particles.h5 but no summary.json; its frames are still a result.
+  // A killed run leaves particles.h5 and particles/ but no summary.json; its frames are still a
+  // result.
   write_scene(scene_2d());
   fs::create_directories(out_dir_);
   write_text(out_dir_ / "particles.h5", "frames of a killed run");
@@ -792,6 +793,13 @@ TEST_F(CommandLine, RefusesToOverwriteParticlesOfAnInterruptedRun) {
   EXPECT_TRUE(contains(r.err, "--overwrite")) << r.err;
   EXPECT_EQ(read_text(out_dir_ / "particles.h5"), "frames of a killed run");
   EXPECT_FALSE(fs::exists(out_dir_ / "summary.json"));
+  // Its frame files alone are a result too (the index can be rebuilt from them).
+  fs::remove(out_dir_ / "particles.h5");
+  fs::create_directories(out_dir_ / "particles");
+  write_text(out_dir_ / "particles" / "000000.h5", "a frame of a killed run");
+  const RunResult again = run_scene();
+  EXPECT_EQ(again.exit_code, 2) << again.err;
+  EXPECT_EQ(read_text(out_dir_ / "particles" / "000000.h5"), "a frame of a killed run");
 }
 
 TEST_F(CommandLine, ReportsBodyLeavingGridAsFault) {

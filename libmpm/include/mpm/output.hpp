@@ -24,23 +24,29 @@ struct ParticleFrame {
   std::vector<int> body;         ///< count, index into the scene's bodies
 };
 
-/// Appends frames to OUT.h5 (group /frames/NNNNNN per frame) and keeps OUT.xmf valid after
-/// every frame (rewritten to a temporary file and renamed), so a killed run leaves a readable
-/// time series of everything written so far.
+/// Writes each frame to its own file, OUT/NNNNNN.h5 (beside OUT.h5, in a directory named after
+/// it), and keeps two indexes of them: OUT.h5, whose /frames/NNNNNN are external links to the
+/// frame files (so h5py or read_frame() open it like one file), and OUT.xmf for ParaView. No file
+/// is changed once written: each is written to a temporary file and renamed, so a run killed at
+/// any moment leaves every frame before it intact and readable, and OUT.h5 and OUT.xmf as they
+/// were after the last frame. (HDF5 changes a file in place, and a process killed while it did
+/// could leave the links of a single growing file pointing at garbage.)
 class ParticleWriter {
  public:
-  /// Creates (truncates) the HDF5 file and the XDMF file. Throws std::runtime_error naming the
-  /// file on failure.
+  /// Creates (truncates) the indexes and the frame directory (its parent must exist), removing
+  /// an earlier run's frame files. Throws std::runtime_error naming the file on failure.
   ParticleWriter(const std::filesystem::path& h5_path, const std::filesystem::path& xmf_path);
-  /// Reopens the files of an earlier run to continue it: keeps its first `keep_frames` frames,
-  /// deletes any later ones (written after the checkpoint being resumed) and rewrites the index.
+  /// Continues an earlier run: keeps its first `keep_frames` frame files (throws naming the first
+  /// one missing or unreadable), deletes later and unfinished ones (written after the checkpoint
+  /// being resumed) and rewrites both indexes from the frame files, whatever state a kill left
+  /// them in.
   ParticleWriter(const std::filesystem::path& h5_path, const std::filesystem::path& xmf_path,
                  std::size_t keep_frames);
   ~ParticleWriter();
   ParticleWriter(const ParticleWriter&) = delete;
   ParticleWriter& operator=(const ParticleWriter&) = delete;
 
-  /// Writes one frame, flushes the HDF5 file, then rewrites the XDMF index.
+  /// Writes one frame file (synced to the disk before it takes its name), then both indexes.
   void write(const ParticleFrame& frame);
   [[nodiscard]] std::size_t frames_written() const;
 
