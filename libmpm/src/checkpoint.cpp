@@ -1,6 +1,8 @@
 #include "mpm/checkpoint.hpp"
 
+#include <filesystem>
 #include <stdexcept>
+#include <system_error>
 
 #include "hdf5_util.hpp"
 
@@ -82,6 +84,8 @@ Checkpoint read_checkpoint(const std::filesystem::path& file, bool texts_only) {
   const auto fail = [&](const std::string& what) {
     return std::runtime_error("cannot read checkpoint " + quoted(file) + ": " + what);
   };
+  std::error_code error;
+  if (!std::filesystem::exists(file, error)) throw fail("no such file (nothing to resume)");
   const Handle h5(H5Fopen(file.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose);
   if (!h5.ok()) throw fail("not an HDF5 file");
   Checkpoint c;

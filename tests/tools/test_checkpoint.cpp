@@ -5,6 +5,7 @@
 
 #include <gtest/gtest.h>
 #include <signal.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -141,13 +142,37 @@ TEST_P(Checkpoint, StoppedAndResumedRunIsBitIdentical) {
 // them the resumed run factorised afresh and parted from the uninterrupted one in the 10th digit.
 INSTANTIATE_TEST_SUITE_P(Walls, Checkpoint, ::testing::Values("mortar", "granular", "enhanced"));
 
-/// Starts `mpm ARGS` and kills it with SIGKILL after `delay`; returns false if it ended first.
-bool kill_after(const std::vector<std::string>& args, std::chrono::milliseconds delay) {
+/// The inode of `file` (0 if absent): a checkpoint is renamed into place, so a new one is a new
+/// inode.
+ino_t inode(const fs::path& file) {
+  struct stat st {};
+  return ::stat(file.c_str(), &st) == 0 ? st.st_ino : 0;
+}
+
+/// Starts `mpm ARGS` and kills it with SIGKILL `delay` after it has written a checkpoint of its
+/// own (`checkpoint` replaced), or `delay` after its start if `checkpoint` is empty; returns
+/// false if it ended first. Waiting for its own checkpoint makes every kill land in a run that
+/// has made progress, however slow the machine (a sanitizer build on a loaded machine spent
+/// all of fixed 40-300 ms delays starting up, and the test then resumed from no checkpoint).
+bool kill_after(const std::vector<std::string>& args, std::chrono::milliseconds delay,
+                const fs::path& checkpoint = {}) {
+  const ino_t before = checkpoint.empty() ? 0 : inode(checkpoint);
   const pid_t pid = start_mpm(args);
   if (pid < 0) return false;
+  int status = 0;
+  if (!checkpoint.empty()) {
+    const auto give_up = std::chrono::steady_clock::now() + std::chrono::minutes(5);
+    while (inode(checkpoint) == before || inode(checkpoint) == 0) {
+      if (::waitpid(pid, &status, WNOHANG) == pid) return false;  // it ended first
+      if (std::chrono::steady_clock::now() > give_up) {
+        ADD_FAILURE() << "no checkpoint written in 5 minutes";
+        break;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    }
+  }
   std::this_thread::sleep_for(delay);
   ::kill(pid, SIGKILL);
-  int status = 0;
   ::waitpid(pid, &status, 0);
   return WIFSIGNALED(status);
 }
@@ -165,24 +190,24 @@ TEST_F(KilledRun, ResumesAfterSigkillAtArbitraryMoments) {
       run_mpm({"run", scene_file_.string(), "-o", whole.string(), "-q", "-j", "1"});
   ASSERT_EQ(reference.exit_code, 0) << reference.err;
 
-  // Fixed pseudo-random delays, so a failure can be rerun; the first kill may land before the
-  // first checkpoint exists, in which case the run is started again rather than resumed.
+  // Fixed pseudo-random delays, so a failure can be rerun. The first kill, 40 ms after the
+  // start, may land before the first checkpoint exists; the run is then started again rather
+  // than resumed. Every later kill comes its delay after the run's first checkpoint of its own.
+  const std::vector<std::string> fresh = {
+      "run", scene_file_.string(), "-o", part.string(), "-q", "-j", "1", "--overwrite"};
+  const std::vector<std::string> resume = {"run", "--resume", part.string(), "-q", "-j", "1"};
   int kills = 0;
   bool started = false;
   for (const int ms : {40, 170, 95, 260, 130, 210, 60, 300}) {
-    std::vector<std::string> args =
-        started
-            ? std::vector<std::string>{"run", "--resume", part.string(), "-q", "-j", "1"}
-            : std::vector<std::string>{"run", scene_file_.string(), "-o", part.string(), "-q", "-j",
-                                       "1",   "--overwrite"};
-    if (!kill_after(args, std::chrono::milliseconds(ms))) break;  // it finished first
+    const fs::path wait_for = kills == 0 ? fs::path() : part / "checkpoint.h5";
+    if (!kill_after(started ? resume : fresh, std::chrono::milliseconds(ms), wait_for)) break;
     ++kills;
     started = fs::exists(part / "checkpoint.h5");
   }
   EXPECT_GE(kills, 3);
   std::printf("killed %d times\n", kills);
   if (!fs::exists(part / "summary.json")) {
-    const RunResult last = run_mpm({"run", "--resume", part.string(), "-q", "-j", "1"});
+    const RunResult last = run_mpm(started ? resume : fresh);
     ASSERT_EQ(last.exit_code, 0) << last.err;
   }
   expect_same_output(whole, part);
