@@ -2,9 +2,7 @@
 // HDF5 and XDMF helpers shared by the particle output and the boundary package (internal to
 // libmpm: HDF5 never appears in a public header).
 
-#include <fcntl.h>
 #include <hdf5.h>
-#include <unistd.h>
 
 #include <array>
 #include <charconv>
@@ -12,6 +10,8 @@
 #include <string>
 #include <utility>
 #include <vector>
+
+#include "sync_file.hpp"
 
 namespace mpm::detail {
 
@@ -43,17 +43,6 @@ class Handle {
   hid_t id_;
   herr_t (*close_)(hid_t);
 };
-
-// Asks the kernel to put a file (or a directory's entries) on the disk: closing or flushing an
-// HDF5 file hands the data to the operating system only, so a power cut after a rename could
-// leave a file whose name is there and whose contents are not.
-inline bool sync_to_disk(const std::filesystem::path& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) return false;
-  const bool synced = ::fsync(fd) == 0;
-  ::close(fd);
-  return synced;
-}
 
 // HDF5 prints an error stack to stderr by default; our exceptions carry the one line users need.
 inline void silence_hdf5() { H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr); }

@@ -21,6 +21,7 @@
 #include "mpm/checkpoint.hpp"
 #include "mpm/output.hpp"
 #include "mpm/solver.hpp"
+#include "sync_file.hpp"
 
 namespace mpm {
 namespace {
@@ -95,7 +96,16 @@ class History {
           std::uintmax_t append_at = 0)
       : file_(file), dim_(scene.dimension) {
     if (append_at > 0) {
+      // Shorter than the checkpoint says (a power cut took its tail): resize_file would pad it
+      // with zero bytes, rows that look written and are not.
       std::error_code error;
+      const std::uintmax_t size = std::filesystem::file_size(file, error);
+      if (error || size < append_at) {
+        throw std::runtime_error("'" + file.string() + "' holds " +
+                                 (error ? std::string("no") : std::to_string(size)) +
+                                 " bytes, fewer than the " + std::to_string(append_at) +
+                                 " its checkpoint counts; run the scene afresh with --overwrite");
+      }
       std::filesystem::resize_file(file, append_at, error);
       if (error) throw std::runtime_error("cannot write '" + file.string() + "'");
       out_.open(file, std::ios::app);
@@ -130,9 +140,13 @@ class History {
     return forces;
   }
 
-  /// Bytes written so far (all flushed): where a resumed run cuts the file back to.
+  /// Bytes written so far (flushed and on the disk, before the checkpoint that counts them):
+  /// where a resumed run cuts the file back to.
   std::uintmax_t bytes() {
     out_.flush();
+    if (!out_ || !detail::sync_to_disk(file_)) {
+      throw std::runtime_error("cannot write '" + file_.string() + "'");
+    }
     return std::filesystem::file_size(file_);
   }
 

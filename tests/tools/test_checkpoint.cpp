@@ -213,6 +213,27 @@ TEST_F(KilledRun, ResumesAfterSigkillAtArbitraryMoments) {
   expect_same_output(whole, part);
 }
 
+// A history cut short after its checkpoint was written (a power cut can take a file's tail) is
+// refused, not padded: extending it would add rows of zero bytes that look written.
+TEST_F(KilledRun, RefusesAHistoryShorterThanItsCheckpoint) {
+  write_text(scene_file_, scene("mortar").dump(2));
+  mpm::RunOptions part;
+  part.out_dir = dir_ / "part";
+  part.quiet = true;
+  part.halt_after_steps = 30;
+  ASSERT_EQ(mpm::run_scene(mpm::load_scene(scene_file_), part), mpm::kExitOk);
+  const fs::path history = part.out_dir / "history.csv";
+  const std::string text = read_text(history);
+  ASSERT_GT(text.size(), 100U);
+  write_text(history, text.substr(0, text.size() / 2));
+  const RunResult r = run_mpm({"run", "--resume", part.out_dir.string(), "-q"});
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_TRUE(contains(r.err, history.string())) << r.err;
+  EXPECT_TRUE(contains(r.err, "fewer than")) << r.err;
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_EQ(read_text(history), text.substr(0, text.size() / 2));  // not padded
+}
+
 TEST_F(KilledRun, RefusesWhatCannotBeResumed) {
   write_text(scene_file_, scene("mortar").dump(2));
   const fs::path out = dir_ / "out";
