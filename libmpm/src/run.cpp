@@ -96,16 +96,8 @@ class History {
           std::uintmax_t append_at = 0)
       : file_(file), dim_(scene.dimension) {
     if (append_at > 0) {
-      // Shorter than the checkpoint says (a power cut took its tail): resize_file would pad it
-      // with zero bytes, rows that look written and are not.
+      check_resumable(file, append_at);
       std::error_code error;
-      const std::uintmax_t size = std::filesystem::file_size(file, error);
-      if (error || size < append_at) {
-        throw std::runtime_error("'" + file.string() + "' holds " +
-                                 (error ? std::string("no") : std::to_string(size)) +
-                                 " bytes, fewer than the " + std::to_string(append_at) +
-                                 " its checkpoint counts; run the scene afresh with --overwrite");
-      }
       std::filesystem::resize_file(file, append_at, error);
       if (error) throw std::runtime_error("cannot write '" + file.string() + "'");
       out_.open(file, std::ios::app);
@@ -121,6 +113,20 @@ class History {
       for (int d = 0; d < dim_; ++d) out_ << ",wall_" << wall << "_f" << kAxis[d];
     }
     out_ << '\n';
+  }
+
+  /// Throws unless `file` holds at least the `append_at` bytes a checkpoint counts. Shorter (a
+  /// power cut took its tail), resize_file would pad it with zero bytes: rows that look written
+  /// and are not. Checked before a resume changes any file.
+  static void check_resumable(const std::filesystem::path& file, std::uintmax_t append_at) {
+    std::error_code error;
+    const std::uintmax_t size = std::filesystem::file_size(file, error);
+    if (error || size < append_at) {
+      throw std::runtime_error("'" + file.string() + "' holds " +
+                               (error ? std::string("no") : std::to_string(size)) +
+                               " bytes, fewer than the " + std::to_string(append_at) +
+                               " its checkpoint counts; run the scene afresh with --overwrite");
+    }
   }
 
   /// Writes a row; returns the force on each wall (what the CSV holds), for the peaks.
@@ -502,13 +508,14 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   try {
     if (options.resume) {
       sim->restore_state(resume);
+      const auto history_bytes =
+          static_cast<std::uintmax_t>(resume.integer("run.history_bytes", 1)[0]);
+      History::check_resumable(out / "history.csv", history_bytes);
       writer = std::make_unique<ParticleWriter>(
           out / "particles.h5", out / "particles.xmf",
           static_cast<std::size_t>(resume.integer("run.frames", 1)[0]));
       first = read_frame(out / "particles.h5", 0);  // through the index the writer rebuilt
-      history = std::make_unique<History>(
-          out / "history.csv", scene, *sim,
-          static_cast<std::uintmax_t>(resume.integer("run.history_bytes", 1)[0]));
+      history = std::make_unique<History>(out / "history.csv", scene, *sim, history_bytes);
     } else {
       fs::create_directories(out);
       fs::remove(out / "checkpoint.h5", ec);  // an --overwrite run does not resume the old one

@@ -224,6 +224,8 @@ TEST_F(KilledRun, RefusesAHistoryShorterThanItsCheckpoint) {
   ASSERT_EQ(mpm::run_scene(mpm::load_scene(scene_file_), part), mpm::kExitOk);
   const fs::path history = part.out_dir / "history.csv";
   const std::string text = read_text(history);
+  const fs::path later = part.out_dir / "particles" / "000099.h5";
+  write_text(later, "a frame written after the checkpoint");
   ASSERT_GT(text.size(), 100U);
   write_text(history, text.substr(0, text.size() / 2));
   const RunResult r = run_mpm({"run", "--resume", part.out_dir.string(), "-q"});
@@ -232,6 +234,8 @@ TEST_F(KilledRun, RefusesAHistoryShorterThanItsCheckpoint) {
   EXPECT_TRUE(contains(r.err, "fewer than")) << r.err;
   EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
   EXPECT_EQ(read_text(history), text.substr(0, text.size() / 2));  // not padded
+  // Refused before the resume changed anything: a frame after the checkpoint is still there.
+  EXPECT_EQ(read_text(later), "a frame written after the checkpoint");
 }
 
 TEST_F(KilledRun, RefusesWhatCannotBeResumed) {
