@@ -38,16 +38,9 @@ const std::string& Checkpoint::text(const std::string& key) const { return looku
 
 void write_checkpoint(const std::filesystem::path& file, const Checkpoint& checkpoint) {
   silence_hdf5();
-  std::filesystem::path tmp = file;
-  tmp += ".tmp";
-  const auto fail = [&]() {
-    std::error_code ignored;
-    std::filesystem::remove(tmp, ignored);
-    return std::runtime_error("cannot write checkpoint " + quoted(file));
-  };
-  {
+  const auto write = [&](const std::filesystem::path& tmp) {
     const Handle h5(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
-    if (!h5.ok()) throw fail();
+    if (!h5.ok()) return false;
     const Handle reals(H5Gcreate2(h5.get(), "reals", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
                        H5Gclose);
     const Handle ints(H5Gcreate2(h5.get(), "integers", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
@@ -67,16 +60,12 @@ void write_checkpoint(const std::filesystem::path& file, const Checkpoint& check
       good = good && write_dataset(texts.get(), key.c_str(), H5T_STD_I8LE, H5T_NATIVE_CHAR,
                                    value.data(), value.size(), 1);
     }
-    if (!good || H5Fflush(h5.get(), H5F_SCOPE_GLOBAL) < 0) throw fail();
-  }
+    return good && H5Fflush(h5.get(), H5F_SCOPE_GLOBAL) >= 0;
+  };
   // On the disk before it takes the checkpoint's name, and the name on the disk after.
-  if (!sync_to_disk(tmp)) throw fail();
-  std::error_code error;
-  std::filesystem::rename(tmp, file, error);
-  if (error) throw fail();
-  const std::filesystem::path directory =
-      file.has_parent_path() ? file.parent_path() : std::filesystem::path(".");
-  if (!sync_to_disk(directory)) throw fail();
+  if (!replace_file(file, write, true)) {
+    throw std::runtime_error("cannot write checkpoint " + quoted(file));
+  }
 }
 
 Checkpoint read_checkpoint(const std::filesystem::path& file, bool texts_only) {

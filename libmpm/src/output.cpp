@@ -76,12 +76,11 @@ std::optional<std::size_t> frame_index(const std::string& file_name) {
   return index;
 }
 
-// The directory of the frame files: OUT.h5's name without the extension, beside it.
+}  // namespace
+
 std::filesystem::path frame_directory(const std::filesystem::path& h5_path) {
   return h5_path.parent_path() / h5_path.stem();
 }
-
-}  // namespace
 
 struct ParticleWriter::Impl {
   std::filesystem::path h5_path;    // the index: /frames/NNNNNN, external links to the frames
@@ -143,20 +142,18 @@ struct ParticleWriter::Impl {
 
   // Written aside and renamed over the old index so a reader never sees a half-written file.
   void write_xmf() const {
-    std::filesystem::path tmp = xmf_path;
-    tmp += ".tmp";
-    {
+    const auto write = [&](const std::filesystem::path& tmp) {
       std::ofstream out(tmp, std::ios::trunc);
       out << "<?xml version=\"1.0\" ?>\n<!DOCTYPE Xdmf SYSTEM \"Xdmf.dtd\" []>\n"
              "<Xdmf Version=\"3.0\">\n  <Domain>\n"
              "    <Grid Name=\"Temporal\" GridType=\"Collection\" CollectionType=\"Temporal\">\n"
           << grids << "    </Grid>\n  </Domain>\n</Xdmf>\n";
       out.close();
-      if (!out) throw std::runtime_error("cannot write XDMF file " + quoted(xmf_path));
+      return static_cast<bool>(out);
+    };
+    if (!replace_file(xmf_path, write, false)) {
+      throw std::runtime_error("cannot write XDMF file " + quoted(xmf_path));
     }
-    std::error_code error;
-    std::filesystem::rename(tmp, xmf_path, error);
-    if (error) throw std::runtime_error("cannot write XDMF file " + quoted(xmf_path));
   }
 
   // The HDF5 index of the first `count` frames, written aside and renamed over the old one like
@@ -165,43 +162,35 @@ struct ParticleWriter::Impl {
   // HDF5 file is ever changed once written: a frame file is complete or absent, and the index is
   // the old one or the new one, whatever moment a run is killed at.
   void write_index(std::size_t count) const {
-    std::filesystem::path tmp = h5_path;
-    tmp += ".tmp";
     const std::string dir = frame_dir.filename().generic_string();
-    bool good = false;
-    {
+    const auto write = [&](const std::filesystem::path& tmp) {
       Handle file(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
-      if (!file.ok()) throw std::runtime_error("cannot create HDF5 file " + quoted(h5_path));
-      Handle group(H5Gcreate2(file.get(), "/frames", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT),
+      Handle group(file.ok()
+                       ? H5Gcreate2(file.get(), "/frames", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT)
+                       : H5I_INVALID_HID,
                    H5Gclose);
-      good = group.ok();
+      bool good = group.ok();
       for (std::size_t i = 0; good && i < count; ++i) {
         const std::string name = frame_name(i);
         good = H5Lcreate_external((dir + "/" + name + ".h5").c_str(), "/", group.get(),
                                   name.c_str(), H5P_DEFAULT, H5P_DEFAULT) >= 0;
       }
       good = group.close() && good;
-      good = file.close() && good;
-    }
-    std::error_code error;
-    if (good) std::filesystem::rename(tmp, h5_path, error);
-    if (!good || error) {
-      std::filesystem::remove(tmp, error);
+      return file.close() && good;
+    };
+    if (!replace_file(h5_path, write, false)) {
       throw std::runtime_error("cannot write HDF5 file " + quoted(h5_path));
     }
   }
 
-  // Written to NNNNNN.h5.tmp and renamed when complete, on the disk before the checkpoint that
-  // counts it (written after it) is: a resume after a power cut finds every frame it needs.
+  // Written aside and renamed when complete, on the disk before the checkpoint that counts it
+  // (written after it) is: a resume after a power cut finds every frame it needs.
   void write_frame(const ParticleFrame& frame, const std::filesystem::path& path) const {
-    std::filesystem::path tmp = path;
-    tmp += ".tmp";
-    bool good = false;
-    {
+    const auto write = [&](const std::filesystem::path& tmp) {
       Handle file(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
       const hid_t id = file.get();
       const std::size_t n = frame.count;
-      good =
+      const bool good =
           file.ok() && write_attribute(id, "time", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.time) &&
           write_attribute(id, "step", H5T_STD_I64LE, H5T_NATIVE_INT64, frame.step) &&
           write_dataset(id, "position", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, frame.position.data(), n,
@@ -216,12 +205,9 @@ struct ParticleWriter::Impl {
           write_dataset(id, "material", H5T_STD_I32LE, H5T_NATIVE_INT, frame.material.data(), n,
                         1) &&
           write_dataset(id, "body", H5T_STD_I32LE, H5T_NATIVE_INT, frame.body.data(), n, 1);
-      good = file.close() && good && sync_to_disk(tmp);
-    }
-    std::error_code error;
-    if (good) std::filesystem::rename(tmp, path, error);
-    if (!good || error || !sync_to_disk(frame_dir)) {
-      std::filesystem::remove(tmp, error);
+      return file.close() && good;
+    };
+    if (!replace_file(path, write, true)) {
       throw std::runtime_error("cannot write frame file " + quoted(path));
     }
   }

@@ -485,7 +485,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       return kExitBadInput;
     }
   } else if (fs::exists(out / "summary.json", ec) || fs::exists(out / "particles.h5", ec) ||
-             fs::exists(out / "particles", ec)) {
+             fs::exists(frame_directory(out / "particles.h5"), ec)) {
     if (!options.overwrite) {
       std::cerr << "mpm: " << out.string()
                 << ": holds an earlier result; choose another directory, pass --overwrite, or "

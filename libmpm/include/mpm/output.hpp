@@ -55,6 +55,9 @@ class ParticleWriter {
   std::unique_ptr<Impl> impl_;
 };
 
+/// The directory of ParticleWriter's frame files: OUT.h5's name without the extension, beside it.
+std::filesystem::path frame_directory(const std::filesystem::path& h5_path);
+
 /// Reads frame `index` (0-based, in write order) back from an HDF5 file written by
 /// ParticleWriter. Throws std::runtime_error naming the file on failure.
 ParticleFrame read_frame(const std::filesystem::path& h5_path, std::size_t index);
