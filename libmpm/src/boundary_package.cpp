@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <exception>
 #include <fstream>
 #include <sstream>
 #include <stdexcept>
@@ -12,6 +13,7 @@
 
 #include "hdf5_util.hpp"
 #include "mpm/grid.hpp"
+#include "sync_file.hpp"
 
 namespace mpm {
 namespace {
@@ -416,11 +418,12 @@ BoundaryPackage prepare_boundary(const mpmgeom::TriangleMesh& imported,
   return package;
 }
 
-void save_boundary_package(const BoundaryPackage& p, const std::filesystem::path& h5_path,
-                           const std::filesystem::path& xmf_path) {
-  const std::filesystem::path tmp_h5 = h5_path.string() + ".tmp";
+namespace {
+
+// Writes the package's HDF5 file at `path` (save_boundary_package() passes a temporary name).
+void write_package(const BoundaryPackage& p, const std::filesystem::path& path) {
   {
-    Writer w(tmp_h5);
+    Writer w(path);
     const hid_t root = w.root();
     w.text(root, "format", "mpm-boundary-package");
     w.integer(root, "version", kFormatVersion);
@@ -475,18 +478,45 @@ void save_boundary_package(const BoundaryPackage& p, const std::filesystem::path
     write_visualisation(w, l);
     w.flush();
   }
-  std::filesystem::rename(tmp_h5, h5_path);
+}
 
-  const std::filesystem::path tmp_xmf = xmf_path.string() + ".tmp";
-  {
-    std::ofstream out(tmp_xmf);
+// replace_file() with a writer that throws: its exception is carried out (the temporary file
+// removed), and a failure to put the file in place names the file.
+template <class Write>
+void replace_or_throw(const std::filesystem::path& file, Write&& write) {
+  std::exception_ptr error;
+  const bool replaced = detail::replace_file(
+      file,
+      [&](const std::filesystem::path& tmp) {
+        try {
+          write(tmp);
+          return true;
+        } catch (...) {
+          error = std::current_exception();
+          return false;
+        }
+      },
+      true);
+  if (error) std::rethrow_exception(error);
+  if (!replaced) fail(file, "cannot put the written file in place (sync or rename failed)");
+}
+
+}  // namespace
+
+// Each file is written aside and renamed over the old one once it is on the disk: a kill, a
+// power cut or a write error leaves the old package or the new one, never a part of one (`mpm
+// prep` output, the scene cache, a run's wall geometry).
+void save_boundary_package(const BoundaryPackage& p, const std::filesystem::path& h5_path,
+                           const std::filesystem::path& xmf_path) {
+  replace_or_throw(h5_path, [&](const std::filesystem::path& tmp) { write_package(p, tmp); });
+  replace_or_throw(xmf_path, [&](const std::filesystem::path& tmp) {
+    std::ofstream out(tmp);
     out << xdmf_text(p.layer,
                      std::filesystem::relative(
                          h5_path, xmf_path.parent_path().empty() ? "." : xmf_path.parent_path())
                          .string());
     if (!out.flush()) fail(xmf_path, "cannot write the XDMF index");
-  }
-  std::filesystem::rename(tmp_xmf, xmf_path);
+  });
 }
 
 BoundaryPackage load_boundary_package(const std::filesystem::path& h5_path) {

@@ -5,10 +5,13 @@
 
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
 #include <string>
+
+#include "sync_file.hpp"
 
 namespace fs = std::filesystem;
 
@@ -27,6 +30,37 @@ class ParticleWriterTest : public ::testing::Test {
   void TearDown() override { fs::remove_all(dir_); }
   fs::path dir_;
 };
+
+// replace_file(), which every output file that must survive a kill goes through: the old file
+// stays whole until the new one is complete, and a failed write leaves no temporary file.
+TEST_F(ParticleWriterTest, ReplaceFileKeepsTheOldFileUntilTheNewOneIsWhole) {
+  const fs::path file = dir_ / "state.txt";
+  auto write_text = [](const fs::path& path, const std::string& text) {
+    std::ofstream out(path);
+    out << text;
+    return static_cast<bool>(out.flush());
+  };
+  ASSERT_TRUE(write_text(file, "old"));
+  auto read = [&] {
+    std::ifstream in(file);
+    return std::string(std::istreambuf_iterator<char>(in), {});
+  };
+  for (const bool durable : {false, true}) {
+    // Half written, then a failure: the old contents, and no FILE.tmp.
+    EXPECT_FALSE(mpm::detail::replace_file(
+        file, [&](const fs::path& tmp) { return write_text(tmp, "half") && false; }, durable));
+    EXPECT_EQ(read(), "old");
+    EXPECT_FALSE(fs::exists(dir_ / "state.txt.tmp"));
+  }
+  EXPECT_TRUE(mpm::detail::replace_file(
+      file, [&](const fs::path& tmp) { return write_text(tmp, "new"); }, true));
+  EXPECT_EQ(read(), "new");
+  EXPECT_FALSE(fs::exists(dir_ / "state.txt.tmp"));
+  // A file in a directory that does not exist: false, nothing made.
+  EXPECT_FALSE(mpm::detail::replace_file(
+      dir_ / "missing" / "x.txt", [&](const fs::path& tmp) { return write_text(tmp, "x"); }, true));
+  EXPECT_FALSE(fs::exists(dir_ / "missing"));
+}
 
 // Deterministic, non-trivial values (negative, fractional, extreme) so an exact comparison proves
 // nothing was converted or reordered on the way.

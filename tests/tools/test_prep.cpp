@@ -165,6 +165,46 @@ TEST_F(Prep, RoundTripPreservesEverything) {
   EXPECT_TRUE(a.wall_coupling.boundary.isApprox(b.wall_coupling.boundary, 0.0));
 }
 
+// A package is written aside and renamed: a write that fails leaves the old files whole and no
+// temporary file behind, and says which file it could not write.
+TEST_F(Prep, FailedSaveKeepsTheOldPackageAndLeavesNoTemporaryFile) {
+  const fs::path out = dir_ / "chute.h5";
+  ASSERT_EQ(
+      run_mpm({"prep", kMeshes + "chute_half_cylinder.obj", "--spacing", "0.2", "-o", out.string()})
+          .exit_code,
+      0);
+  const BoundaryPackage a = load_boundary_package(out);
+  const fs::path copy = dir_ / "copy.h5", xmf = dir_ / "copy.xmf";
+  save_boundary_package(a, copy, xmf);
+  EXPECT_FALSE(fs::exists(dir_ / "copy.h5.tmp"));
+  EXPECT_FALSE(fs::exists(dir_ / "copy.xmf.tmp"));
+  const std::string before = read_text(copy);
+
+  // The HDF5 file cannot be created (its temporary name is taken by a directory that is not
+  // empty, which no test run as root can be kept from writing otherwise).
+  fs::create_directories(dir_ / "copy.h5.tmp" / "taken");
+  try {
+    save_boundary_package(a, copy, xmf);
+    FAIL() << "expected an exception";
+  } catch (const std::runtime_error& e) {
+    EXPECT_TRUE(contains(e.what(), "copy.h5")) << e.what();
+  }
+  EXPECT_EQ(read_text(copy), before);
+  EXPECT_TRUE(load_boundary_package(copy).layer.nodes.isApprox(a.layer.nodes, 0.0));
+  fs::remove_all(dir_ / "copy.h5.tmp");
+
+  // The XDMF index cannot be written (its directory does not exist): named, and nothing left.
+  const fs::path missing = dir_ / "no_such_dir" / "copy.xmf";
+  try {
+    save_boundary_package(a, copy, missing);
+    FAIL() << "expected an exception";
+  } catch (const std::runtime_error& e) {
+    EXPECT_TRUE(contains(e.what(), "copy.xmf")) << e.what();
+  }
+  EXPECT_FALSE(fs::exists(dir_ / "copy.h5.tmp"));
+  EXPECT_EQ(read_text(copy), before);  // the same package written again: the same bytes
+}
+
 TEST_F(Prep, LoadingSomethingElseFailsWithTheFileName) {
   write_text(dir_ / "not.h5", "plain text");
   try {
