@@ -545,14 +545,16 @@ void Solver<D>::layer_scatter(bool with_force) {
       }
       w.scatter_entries.resize(static_cast<std::size_t>(w.scatter_first.back()));
     }
+    layer_entry_.resize(layer_list_.size() * kSlots);
     for (std::size_t i = 0; i < layer_list_.size(); ++i) {
       DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
       const AlphaStencil<D>& st = layer_stencil_[i];
       for (int k = 0; k < st.count; ++k) {
         // scatter_first[j] runs ahead while filling, and is moved back below.
-        w.scatter_entries[static_cast<std::size_t>(
-            w.scatter_first[static_cast<std::size_t>(w.scatter_slot[st.node[k]])]++)] =
-            static_cast<int>(i) * kSlots + k;
+        const int code = static_cast<int>(i) * kSlots + k;
+        const int place = w.scatter_first[static_cast<std::size_t>(w.scatter_slot[st.node[k]])]++;
+        w.scatter_entries[static_cast<std::size_t>(place)] = code;
+        layer_entry_[static_cast<std::size_t>(code)] = place;
       }
     }
     for (auto& w : dual_) {
@@ -560,62 +562,99 @@ void Solver<D>::layer_scatter(bool with_force) {
         w.scatter_first[j] = w.scatter_first[j - 1];
       }
       w.scatter_first[0] = 0;
+      w.scatter_terms.resize(w.scatter_entries.size());
     }
   }
+  // Each pair's terms, particle by particle (a particle's data read once for its stencil), at
+  // the pair's place among its node's entries.
+  //
+  // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
+  // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md). The
+  // MUSL remap (with_force false) leaves C_p out as well: C_p^{n+1} is the gradient of the
+  // remapped field, and remapping with the old C_p would hand each particle its own C_p back,
+  // so a particle alone in a boundary cell would keep straining at a fixed rate that its
+  // stress never corrects (docs/verification.md, particle against a wall). Remapping only its
+  // spin (the skew part) mended the rolling disk but fed back through the wall constraint: a
+  // block on a one-cell incline blew up, and the debris scene threw a particle out at 27 m/s
+  // (docs/verification.md, rolling cylinder).
+  tbb::parallel_for(
+      tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+          const auto p = static_cast<std::size_t>(layer_list_[i]);
+          DualWall<D>& w = dual_[P.layer_wall[p]];
+          const bool affine = apic && !w.enhanced && with_force;
+          const bool centroids = !with_force && !w.enhanced;
+          const LayerTerms& t = layer_terms_[i];
+          const AlphaStencil<D>& st = layer_stencil_[i];
+          const double m = P.mass[p];
+          for (int k = 0; k < st.count; ++k) {
+            auto& terms = w.scatter_terms[static_cast<std::size_t>(layer_entry_[i * kSlots + k])];
+            const double N = st.N[k];
+            Vec<D> momentum;
+            if (affine) {
+              momentum =
+                  N * m * (P.velocity[p] + P.affine[p] * (w.position[st.node[k]] - P.position[p]));
+            } else {
+              momentum = N * m * P.velocity[p];
+            }
+            for (int a = 0; a < D; ++a) terms[1 + a] = momentum[a];
+            if (with_force) {
+              terms[0] = N * m;
+              const Vec<D> force = t.vs * st.dN[k] + N * t.mb;
+              for (int a = 0; a < D; ++a) terms[1 + D + a] = force[a];
+            } else if (centroids) {
+              const Vec<D> centroid = N * m * t.at;
+              for (int a = 0; a < D; ++a) terms[1 + D + a] = centroid[a];
+            }
+          }
+        }
+      });
   // Each node sums its particles' terms in the layer list's order (the order of a serial
-  // scatter: the same sums, up to the compiler fusing a multiply-add differently), nodes in
-  // parallel: no two tasks write the same node.
+  // scatter), from contiguous memory, nodes in parallel: no two tasks write the same node.
   for (auto& w : dual_) {
     const bool touch = with_force && w.spec->contact.separable;
     const bool centroids = !with_force && !w.enhanced;
-    // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
-    // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md). The
-    // MUSL remap (with_force false) leaves C_p out as well: C_p^{n+1} is the gradient of the
-    // remapped field, and remapping with the old C_p would hand each particle its own C_p back,
-    // so a particle alone in a boundary cell would keep straining at a fixed rate that its
-    // stress never corrects (docs/verification.md, particle against a wall). Remapping only its
-    // spin (the skew part) mended the rolling disk but fed back through the wall constraint: a
-    // block on a one-cell incline blew up, and the debris scene threw a particle out at 27 m/s
-    // (docs/verification.md, rolling cylinder).
-    const bool affine = apic && !w.enhanced && with_force;
     tbb::parallel_for(
         tbb::blocked_range<std::size_t>(0, w.scatter_nodes.size(), 256), [&](const auto& r) {
           for (std::size_t j = r.begin(); j != r.end(); ++j) {
             const int node = w.scatter_nodes[j];
             const auto n = static_cast<std::size_t>(node);
-            const Vec<D>& at_node = w.position[n];
+            const int first = w.scatter_first[j], last = w.scatter_first[j + 1];
+            double mass = 0.0, momentum[D] = {}, second[D] = {};  // force, or the centroid's
+            for (int e = first; e < last; ++e) {
+              const auto& terms = w.scatter_terms[static_cast<std::size_t>(e)];
+              mass += terms[0];
+              for (int a = 0; a < D; ++a) {
+                momentum[a] += terms[1 + a];
+                second[a] += terms[1 + D + a];
+              }
+            }
+            for (int a = 0; a < D; ++a) w.momentum[n][a] = momentum[a];
+            if (centroids) {
+              for (int a = 0; a < D; ++a) w.centroid[n][a] = second[a];
+            }
+            if (!with_force) continue;
+            w.mass[n] = mass;
+            for (int a = 0; a < D; ++a) w.force[n][a] = second[a];
             const int wi = w.wall_index_of_node[n];
-            for (int e = w.scatter_first[j]; e < w.scatter_first[j + 1]; ++e) {
+            if (!touch || wi < 0) continue;
+            const Vec<D>& at_node = w.position[n];
+            for (int e = first; e < last; ++e) {
               const int code = w.scatter_entries[static_cast<std::size_t>(e)];
               const auto i = static_cast<std::size_t>(code / kSlots);
-              const int k = code % kSlots;
               const auto p = static_cast<std::size_t>(layer_list_[i]);
               const LayerTerms& t = layer_terms_[i];
-              const AlphaStencil<D>& st = layer_stencil_[i];
-              const double N = st.N[k];
-              const double m = P.mass[p];
-              if (affine) {
-                w.momentum[n] += N * m * (P.velocity[p] + P.affine[p] * (at_node - P.position[p]));
-              } else {
-                w.momentum[n] += N * m * P.velocity[p];
-              }
-              if (centroids) w.centroid[n] += N * m * t.at;
-              if (!with_force) continue;
-              w.mass[n] += N * m;
-              w.force[n] += t.vs * st.dN[k] + N * t.mb;
-              if (touch && wi >= 0) {
-                const Vec<D> d = P.position[p] - at_node;
-                // At a concave corner the particle may lie over any of the node's facets.
-                const auto wu = static_cast<std::size_t>(wi);
-                const int c0 = w.corner_first[wu], c1 = w.corner_first[wu + 1];
-                const Vec<D>* normals = c1 > c0 ? &w.corner_normals[c0] : &w.wall_normal[wu];
-                for (int c = 0; c < std::max(1, c1 - c0); ++c) {
-                  const double normal = d.dot(normals[c]);
-                  if ((d - normal * normals[c]).norm() <= t.window) {
-                    const double gap = normal - t.reach;
-                    w.touch_gap[n] = std::min(w.touch_gap[n], gap);
-                    if (c1 > c0) w.corner_gap[c0 + c] = std::min(w.corner_gap[c0 + c], gap);
-                  }
+              const Vec<D> d = P.position[p] - at_node;
+              // At a concave corner the particle may lie over any of the node's facets.
+              const auto wu = static_cast<std::size_t>(wi);
+              const int c0 = w.corner_first[wu], c1 = w.corner_first[wu + 1];
+              const Vec<D>* normals = c1 > c0 ? &w.corner_normals[c0] : &w.wall_normal[wu];
+              for (int c = 0; c < std::max(1, c1 - c0); ++c) {
+                const double normal = d.dot(normals[c]);
+                if ((d - normal * normals[c]).norm() <= t.window) {
+                  const double gap = normal - t.reach;
+                  w.touch_gap[n] = std::min(w.touch_gap[n], gap);
+                  if (c1 > c0) w.corner_gap[c0 + c] = std::min(w.corner_gap[c0 + c], gap);
                 }
               }
             }

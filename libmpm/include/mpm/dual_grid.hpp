@@ -5,6 +5,7 @@
 
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
+#include <array>
 #include <memory>
 #include <string>
 #include <vector>
@@ -290,6 +291,10 @@ struct DualWall {
   /// Per boundary node: the counting sort's count (zero between sorts) and the node's place in
   /// scatter_nodes (valid for the nodes listed there).
   std::vector<int> scatter_count, scatter_slot;
+  /// Each (particle, stencil slot) pair's terms, at its place in scatter_entries (layer_scatter()
+  /// forms them particle by particle, then sums them node by node from contiguous memory):
+  /// mass, momentum and force, or (the MUSL remap) momentum and the centroid's.
+  std::vector<std::array<double, 1 + 2 * D>> scatter_terms;
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
   EnhancedState<D> enh;

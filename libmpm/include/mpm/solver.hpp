@@ -273,6 +273,9 @@ class Solver final : public Simulation {
     double reach, window;
   };
   std::vector<LayerTerms> layer_terms_;
+  /// Per layer particle and stencil slot (place in the layer list times the slots per cell plus
+  /// the slot): the pair's place in its wall's scatter_entries (layer_scatter()).
+  std::vector<int> layer_entry_;
   /// locate_in_layers() per chunk of particles: the particles a layer holds, with their wall,
   /// cell and natural coordinates (joined in chunk order, so the list stays in index order).
   struct LayerHit {
