@@ -272,25 +272,48 @@ void Solver<D>::step(double dt) {
 }
 
 // Counting sort of particle indices by slab (slab_width cells along axis 0). O(N), no
-// allocation once the buffers have grown.
+// allocation once the buffers have grown. Fixed chunks of particles (not one per thread) count
+// their particles per slab side by side, and each chunk then places its particles after the
+// earlier chunks' ones of the same slab: within a slab the particles stay in index order, as a
+// serial counting sort leaves them, whatever the thread count.
 template <int D>
 void Solver<D>::bin_particles_into_slabs() {
   const auto& P = particles;
   const int slabs = grid.nodes[0] / slab_width + 2;
-  slab_start_.assign(slabs + 1, 0);
-  slab_of_.resize(P.size());
-  slab_order_.resize(P.size());
-  for (std::size_t p = 0; p < P.size(); ++p) {
-    const double xg = (P.position[p][0] - grid.origin[0]) * grid.inv_h;
-    const int slab = std::clamp(static_cast<int>(std::floor(xg / slab_width)), 0, slabs - 1);
-    slab_of_[p] = slab;
-    ++slab_start_[slab + 1];
+  const auto per_chunk = static_cast<std::size_t>(slabs);
+  constexpr std::size_t kChunk = 16384;
+  const std::size_t n = P.size(), chunks = std::max<std::size_t>(1, (n + kChunk - 1) / kChunk);
+  slab_count_.assign(chunks * per_chunk, 0);
+  slab_of_.resize(n);
+  slab_order_.resize(n);
+  tbb::parallel_for(std::size_t{0}, chunks, [&](std::size_t c) {
+    int* count = &slab_count_[c * per_chunk];
+    for (std::size_t p = c * kChunk; p < std::min(n, (c + 1) * kChunk); ++p) {
+      const double xg = (P.position[p][0] - grid.origin[0]) * grid.inv_h;
+      const int slab = std::clamp(static_cast<int>(std::floor(xg / slab_width)), 0, slabs - 1);
+      slab_of_[p] = slab;
+      ++count[slab];
+    }
+  });
+  // Each chunk's count becomes its first place in the slab.
+  slab_start_.assign(per_chunk + 1, 0);
+  int next = 0;
+  for (std::size_t slab = 0; slab < per_chunk; ++slab) {
+    slab_start_[slab] = next;
+    for (std::size_t c = 0; c < chunks; ++c) {
+      int& count = slab_count_[c * per_chunk + slab];
+      const int here = count;
+      count = next;
+      next += here;
+    }
   }
-  for (int k = 0; k < slabs; ++k) slab_start_[k + 1] += slab_start_[k];
-  slab_fill_.assign(slab_start_.begin(), slab_start_.end() - 1);
-  for (std::size_t p = 0; p < P.size(); ++p) {
-    slab_order_[slab_fill_[slab_of_[p]]++] = static_cast<int>(p);
-  }
+  slab_start_[per_chunk] = next;
+  tbb::parallel_for(std::size_t{0}, chunks, [&](std::size_t c) {
+    int* place = &slab_count_[c * per_chunk];
+    for (std::size_t p = c * kChunk; p < std::min(n, (c + 1) * kChunk); ++p) {
+      slab_order_[static_cast<std::size_t>(place[slab_of_[p]]++)] = static_cast<int>(p);
+    }
+  });
 }
 
 // One particle's share of the 3D grid, the sums factorised along the axes (as in

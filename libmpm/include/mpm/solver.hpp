@@ -304,7 +304,7 @@ class Solver final : public Simulation {
   std::vector<int> slab_order_;
   std::vector<int> slab_start_;
   std::vector<int> slab_of_;
-  std::vector<int> slab_fill_;
+  std::vector<int> slab_count_;  ///< per chunk of particles and slab (bin_particles_into_slabs)
   double mass_threshold_ = 0.0;
   double coupling_threshold_ = 0.0;  ///< absolute, from scene.coupling_mass_threshold
   double max_speed_ = 0.0;
