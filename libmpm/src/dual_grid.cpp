@@ -1061,7 +1061,7 @@ Mat<D> layer_affine(const DualWall<D>& w, const AlphaStencil<D>& st, const Mat<D
   // their second moment against the nodes' own (1e-3: centroids spanning ~3% of the cell).
   // lambda_min(M) > t exactly when M - t I is positive definite, which Sylvester's criterion
   // decides from its leading principal minors (no eigenvalues: the iterative solver was 3% of
-  // the debris scene's time, the closed form's trigonometry 1% of the floor benchmark's step).
+  // the debris scene's time, and the closed form still took an acos and two cosines a particle).
   // A NaN fails every comparison, so it too keeps the gradient.
   Mat<D> shifted = M;
   shifted.diagonal().array() -= 1e-3 * spread / (total * D);
