@@ -33,7 +33,9 @@ class ParticleWriterTest : public ::testing::Test {
 
 // replace_file(), which every output file that must survive a kill goes through: the old file
 // stays whole until the new one is complete, and a failed write leaves no temporary file.
-TEST_F(ParticleWriterTest, ReplaceFileKeepsTheOldFileUntilTheNewOneIsWhole) {
+class ReplaceFile : public ParticleWriterTest {};
+
+TEST_F(ReplaceFile, KeepsTheOldFileUntilTheNewOneIsWhole) {
   const fs::path file = dir_ / "state.txt";
   auto write_text = [](const fs::path& path, const std::string& text) {
     std::ofstream out(path);
