@@ -5,6 +5,7 @@
 #include <system_error>
 
 #include "hdf5_util.hpp"
+#include "sync_file.hpp"
 
 namespace mpm {
 namespace {

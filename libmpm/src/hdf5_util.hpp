@@ -11,8 +11,6 @@
 #include <utility>
 #include <vector>
 
-#include "sync_file.hpp"
-
 namespace mpm::detail {
 
 inline std::string quoted(const std::filesystem::path& path) { return "'" + path.string() + "'"; }

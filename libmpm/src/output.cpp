@@ -1,6 +1,7 @@
 #include "mpm/output.hpp"
 
 #include "hdf5_util.hpp"
+#include "sync_file.hpp"
 
 #include <algorithm>
 #include <array>

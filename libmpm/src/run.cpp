@@ -95,8 +95,7 @@ class History {
   History(const std::filesystem::path& file, const Scene& scene, const Simulation& sim,
           std::uintmax_t append_at = 0)
       : file_(file), dim_(scene.dimension) {
-    if (append_at > 0) {
-      check_resumable(file, append_at);
+    if (append_at > 0) {  // run_scene() has checked the length (check_resumable())
       std::error_code error;
       std::filesystem::resize_file(file, append_at, error);
       if (error) throw std::runtime_error("cannot write '" + file.string() + "'");
