@@ -259,11 +259,13 @@ struct DualWall {
   /// and the shift); `schur` holds a factorisation (held by pointer: Eigen's solvers cannot be
   /// moved) of `schur_base`, which may be an earlier step's S with the same coupling pattern
   /// (`factored_structure`): the masses change a little from step to step, so S is then solved
-  /// by refinement against it. A checkpoint saves `schur_base` and `factored_structure`.
+  /// by refinement against it. A checkpoint saves `schur_base` and `factored_structure`. Only
+  /// its lower triangle is S (all the factorisation reads): factorise_schur() leaves out the
+  /// upper entries of its last columns.
   Eigen::VectorXd inv_grid_mass, inv_layer_mass;
   double schur_shift = 0.0;
   Eigen::SparseMatrix<double> schur_base;
-  Eigen::SparseMatrix<double> schur_left, schur_right;  ///< factorise_schur()'s halves of S
+  Eigen::SparseMatrix<double> schur_left, schur_right;  ///< factorise_schur()'s two parts of S
   std::unique_ptr<SparseLdlt> schur = std::make_unique<SparseLdlt>();
   std::size_t pattern_hash = 0;        ///< sparsity of the last factorised S: reuse its ordering
   std::size_t factored_structure = 0;  ///< patterns of R^A, R^alpha when `schur_base` was formed
