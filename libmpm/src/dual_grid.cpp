@@ -801,8 +801,7 @@ bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar) {
   // gather).
   const Eigen::Index split = static_cast<Eigen::Index>(0.38 * static_cast<double>(k));
   const Eigen::Index rest = k - split;
-  Eigen::SparseMatrix<double>& left = w.schur_left;
-  Eigen::SparseMatrix<double>& right = w.schur_right;
+  Eigen::SparseMatrix<double> left, right;
   tbb::parallel_invoke(
       [&] {
         const Eigen::SparseMatrix<double> bt = B.transpose();

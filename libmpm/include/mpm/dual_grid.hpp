@@ -265,7 +265,6 @@ struct DualWall {
   Eigen::VectorXd inv_grid_mass, inv_layer_mass;
   double schur_shift = 0.0;
   Eigen::SparseMatrix<double> schur_base;
-  Eigen::SparseMatrix<double> schur_left, schur_right;  ///< factorise_schur()'s two parts of S
   std::unique_ptr<SparseLdlt> schur = std::make_unique<SparseLdlt>();
   std::size_t pattern_hash = 0;        ///< sparsity of the last factorised S: reuse its ordering
   std::size_t factored_structure = 0;  ///< patterns of R^A, R^alpha when `schur_base` was formed
