@@ -57,13 +57,17 @@ struct PerfArgs {
   int steps = 20;          ///< timed steps per round (after 5 settling steps)
   int rounds = 5;          ///< rounds per scene, interleaved with the other scenes' (median)
   double yardstick = 0.0;  ///< > 0: the yardstick's M particle-steps/s, same session
-  bool smoke = false;      ///< a tiny block, 1 round of 2 steps (the test suite's run)
+  /// Non-empty: the yardstick's script (../shared/tools/yardstick/run.sh), run once per round
+  /// of the standard block, interleaved with its rounds (instead of `yardstick`).
+  std::filesystem::path yardstick_script;
+  bool smoke = false;  ///< a tiny block, 1 round of 2 steps (the test suite's run)
   std::filesystem::path json_file;
 };
 
 /// `mpm bench perf`: issue 9's step targets (throughput, parallel speed-up, the dual-grid floor
 /// against the standard one, memory per particle, scaling) timed in one run; 0, or 1 when a run
-/// faulted, 4 when the JSON cannot be written.
+/// faulted or a later round of the yardstick failed, 2 when the yardstick's script cannot be
+/// run or prints no rate for the thread count, 4 when the JSON cannot be written.
 int perf_command(const PerfArgs& args);
 
 /// `mpm bench accuracy|stability`: 0 when no run failed (a numerical fault or non-finite error;

@@ -2,19 +2,28 @@
 // rounds interleaved with each other (this machine is shared and its speed drifts by 10% within
 // minutes: a number from another run is no reference). The scenes are
 // bench/bench_step.cpp's (bench/perf_scenes.hpp); the yardstick
-// (../shared/tools/yardstick/run.sh) is not part of the project, so its throughput, measured in
-// the same session, is passed in (--yardstick) to print the throughput ratio.
+// (../shared/tools/yardstick/run.sh) is not part of the project: its script is run once per
+// round of the standard block (--yardstick-script), or its throughput, measured in the same
+// session, is passed in (--yardstick), to print the throughput ratio.
 
+#include <sys/wait.h>
 #include <tbb/global_control.h>
 #include <tbb/info.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
+#include <optional>
+#include <regex>
+#include <sstream>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -106,16 +115,87 @@ class Timed {
   std::vector<double> rounds_;
 };
 
-/// Times `scenes` in `rounds` interleaved rounds of `steps` steps each.
+/// Times `scenes` in `rounds` interleaved rounds of `steps` steps each; `before_round(r)`, if
+/// given, runs before each round r.
 std::vector<Timing> time_together(std::vector<std::unique_ptr<Timed>>& scenes, int rounds,
-                                  int steps) {
+                                  int steps, const std::function<void(int)>& before_round = {}) {
   for (int r = 0; r < rounds; ++r) {
+    if (before_round) before_round(r);
     for (auto& s : scenes) s->round(steps);
   }
   std::vector<Timing> timings;
   for (auto& s : scenes) timings.push_back(s->result());
   return timings;
 }
+
+/// The yardstick (../shared/tools/yardstick/run.sh, a stripped MLS-MPM step that is not part of
+/// the project) run as a program, once per round of the standard block: the throughput ratio is
+/// then of medians over interleaved rounds, as every other ratio here, instead of against a
+/// rate measured minutes away (the machine's speed drifts by 10% within minutes). The script
+/// prints a line "threads T particles N steps S time X s -> R M particle-steps/s" per thread
+/// count; the rate on this run's thread count is kept.
+class Yardstick {
+ public:
+  Yardstick(const std::filesystem::path& script, int threads)
+      : script_(std::filesystem::absolute(script).lexically_normal()), threads_(threads) {}
+
+  /// Runs the script once; false, with error() saying why in one line, when it cannot be run,
+  /// fails, or prints no rate for this run's thread count.
+  bool round() {
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(script_, ec)) return fail("is not a file");
+    if (::access(script_.c_str(), X_OK) != 0) return fail("is not executable");
+    // The path in single quotes for the shell (a quote in it closed, escaped and reopened).
+    std::string command = "'";
+    for (const char c : script_.string())
+      command += c == '\'' ? std::string("'\\''") : std::string(1, c);
+    command += "' 2>&1";
+    std::fflush(nullptr);
+    FILE* pipe = ::popen(command.c_str(), "r");
+    if (pipe == nullptr) return fail("cannot be started");
+    std::string output;
+    char buffer[512];
+    while (std::fgets(buffer, sizeof buffer, pipe) != nullptr) output += buffer;
+    const int status = ::pclose(pipe);
+    if (status != 0) {
+      const int code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+      return fail(code >= 0 ? "exited with status " + std::to_string(code)
+                            : std::string("was killed"));
+    }
+    static const std::regex line(R"(threads (\d+) .*-> ([0-9.eE+-]+) M particle-steps/s)");
+    std::istringstream lines(output);
+    for (std::string text; std::getline(lines, text);) {
+      std::smatch m;
+      if (!std::regex_search(text, m, line) || m[1].str() != std::to_string(threads_)) continue;
+      const double rate = std::strtod(m[2].str().c_str(), nullptr);
+      if (!(rate > 0.0) || !std::isfinite(rate)) break;
+      rates_.push_back(rate);
+      return true;
+    }
+    return fail("printed no rate for " + std::to_string(threads_) + " threads (a line \"threads " +
+                std::to_string(threads_) + " ... -> R M particle-steps/s\")");
+  }
+
+  [[nodiscard]] double median() const {
+    std::vector<double> sorted = rates_;
+    std::sort(sorted.begin(), sorted.end());
+    return sorted[sorted.size() / 2];
+  }
+  [[nodiscard]] const std::vector<double>& rates() const { return rates_; }
+  [[nodiscard]] const std::string& error() const { return error_; }
+  [[nodiscard]] const std::filesystem::path& script() const { return script_; }
+
+ private:
+  bool fail(const std::string& why) {
+    error_ = "--yardstick-script " + script_.string() + ": " + why;
+    return false;
+  }
+
+  std::filesystem::path script_;
+  int threads_;
+  std::vector<double> rates_;
+  std::string error_;
+};
 
 json to_json(const Timing& t) {
   json j = {{"particles", t.particles},
@@ -171,7 +251,17 @@ int perf_command(const PerfArgs& args) {
   const int settle = 5;
   const int threads = static_cast<int>(
       tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism));
-  // The JSON file is opened first: a path that cannot be written fails before the minute of
+  // The yardstick's first round, before anything is written: a script that cannot be run fails
+  // here, with the JSON file as it was.
+  std::optional<Yardstick> yardstick;
+  if (!args.yardstick_script.empty()) {
+    yardstick.emplace(args.yardstick_script, threads);
+    if (!yardstick->round()) {
+      std::cerr << "mpm bench perf: " << yardstick->error() << "\n";
+      return kExitBadInput;
+    }
+  }
+  // The JSON file is opened next: a path that cannot be written fails before the minute of
   // timing, not after it.
   std::ofstream out;
   if (!args.json_file.empty()) {
@@ -202,8 +292,32 @@ int perf_command(const PerfArgs& args) {
     standard.push_back(std::make_unique<Timed>(scene, settle, 0));
     standard.push_back(std::make_unique<Timed>(scene, settle, 1));
   }
-  const std::vector<Timing> blocks = time_together(standard, rounds, steps);
+  // The yardstick's later rounds run before the standard block's (its first ran above).
+  bool yardstick_ok = true;
+  const std::vector<Timing> blocks = time_together(standard, rounds, steps, [&](int r) {
+    if (r > 0 && yardstick && yardstick_ok) yardstick_ok = yardstick->round();
+  });
   standard.clear();  // the floors and the scaling runs need the memory
+  double yardstick_rate = args.yardstick;
+  if (yardstick) {
+    json entry = {{"script", yardstick->script().string()},
+                  {"threads", threads},
+                  {"rates", yardstick->rates()}};
+    if (yardstick_ok) {
+      yardstick_rate = yardstick->median();
+      entry["median"] = yardstick_rate;
+      const auto [lo, hi] =
+          std::minmax_element(yardstick->rates().begin(), yardstick->rates().end());
+      std::printf("  %-34s %9s %10s %9.2f  median of %zu runs (%s-%s), one before each round\n",
+                  "yardstick (its script)", "", "", yardstick_rate, yardstick->rates().size(),
+                  fixed(*lo).c_str(), fixed(*hi).c_str());
+    } else {
+      faulted = true;
+      entry["error"] = yardstick->error();
+      std::cerr << "mpm bench perf: " << yardstick->error() << " (no throughput ratio)\n";
+    }
+    report["yardstick"] = entry;
+  }
   for (int u = 0; u < 2; ++u) {
     const std::string update = u == 0 ? "musl" : "usl";
     const Timing& all = blocks[static_cast<std::size_t>(2 * u)];
@@ -214,8 +328,8 @@ int perf_command(const PerfArgs& args) {
     std::string note = "1 -> " + std::to_string(threads) + " threads: " + fixed(speedup);
     json entry = {
         {"all_threads", to_json(all)}, {"one_thread", to_json(one)}, {"parallel_speedup", speedup}};
-    if (args.yardstick > 0.0) {
-      const double ratio = 1e-6 * all.rate() / args.yardstick;
+    if (yardstick_rate > 0.0) {
+      const double ratio = 1e-6 * all.rate() / yardstick_rate;
       note += ", " + fixed(ratio) + " x yardstick";
       entry["yardstick_ratio"] = ratio;
     }

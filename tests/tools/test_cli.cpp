@@ -573,6 +573,81 @@ TEST_F(CommandLine, BenchPerfRefusesOtherKindsOptionsAndAnUnwritableJson) {
   EXPECT_FALSE(fs::exists(dir_ / "perf.csv"));
 }
 
+// --yardstick-script runs the yardstick's script (../shared/tools/yardstick/run.sh) once per
+// round of the standard block and divides by the median of the rates it printed for this run's
+// thread count. A stand-in script prints known rates (the real one takes seconds) and counts its
+// runs: --smoke times one round.
+TEST_F(CommandLine, BenchPerfRunsTheYardsticksScriptAndDividesByItsRate) {
+  const fs::path script = dir_ / "yard stick's.sh";  // a space and a quote for the shell
+  const fs::path count = dir_ / "runs";
+  write_text(script, "#!/bin/sh\necho run >> '" + count.string() +
+                         "'\necho 'compiling...'\n"
+                         "echo 'threads 1 particles 262144 steps 30 time 2.0 s -> 4.00 M "
+                         "particle-steps/s'\n"
+                         "echo 'threads 2 particles 262144 steps 30 time 1.0 s -> 8.00 M "
+                         "particle-steps/s'\n");
+  fs::permissions(script, fs::perms::owner_all);
+  for (const int threads : {1, 2}) {
+    SCOPED_TRACE(threads);
+    const fs::path report = dir_ / ("perf" + std::to_string(threads) + ".json");
+    fs::remove(count);
+    const RunResult r = run_mpm({"bench", "perf", "--smoke", "-j", std::to_string(threads),
+                                 "--yardstick-script", script.string(), "--json", report.string()});
+    ASSERT_EQ(r.exit_code, 0) << r.err;
+    EXPECT_EQ(read_text(count), "run\n");
+    const json perf = json::parse(read_text(report));
+    const double rate = threads == 1 ? 4.0 : 8.0;
+    EXPECT_EQ(perf["yardstick"]["median"].get<double>(), rate);
+    EXPECT_EQ(perf["yardstick"]["rates"].size(), 1U);
+    for (const char* update : {"standard_musl", "standard_usl"}) {
+      const double ours =
+          perf[update]["all_threads"]["particle_steps_per_second"].get<double>() * 1e-6;
+      EXPECT_NEAR(perf[update]["yardstick_ratio"].get<double>(), ours / rate, 1e-12 * ours / rate);
+    }
+  }
+}
+
+// A yardstick that cannot be run, fails or prints no rate for the thread count: one line naming
+// the script and why, exit 2, and the JSON file as it was (nothing timed, nothing written).
+TEST_F(CommandLine, BenchPerfRefusesAYardstickScriptThatGivesNoRate) {
+  const fs::path report = dir_ / "perf.json";
+  write_text(report, "an earlier report");
+  auto expect_refused = [&](const fs::path& script, const std::string& why) {
+    SCOPED_TRACE(why);
+    const RunResult r = run_mpm({"bench", "perf", "--smoke", "-j", "2", "--yardstick-script",
+                                 script.string(), "--json", report.string()});
+    EXPECT_EQ(r.exit_code, 2) << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+    EXPECT_TRUE(contains(r.err, script.filename().string())) << r.err;
+    EXPECT_TRUE(contains(r.err, why)) << r.err;
+    EXPECT_EQ(read_text(report), "an earlier report");
+  };
+  expect_refused(dir_ / "missing.sh", "is not a file");
+  const fs::path plain = dir_ / "plain.sh";
+  write_text(plain, "#!/bin/sh\necho 'threads 2 x -> 8.00 M particle-steps/s'\n");
+  fs::permissions(plain, fs::perms::owner_read | fs::perms::owner_write);
+  expect_refused(plain, "is not executable");
+  auto script = [&](const std::string& name, const std::string& body) {
+    const fs::path path = dir_ / name;
+    write_text(path, "#!/bin/sh\n" + body);
+    fs::permissions(path, fs::perms::owner_all);
+    return path;
+  };
+  expect_refused(script("fails.sh", "echo 'threads 2 x -> 8.00 M particle-steps/s'\nexit 3\n"),
+                 "exited with status 3");
+  expect_refused(script("one_thread.sh", "echo 'threads 1 x -> 4.00 M particle-steps/s'\n"),
+                 "printed no rate for 2 threads");
+  expect_refused(script("garbage.sh", "echo 'threads 2 x -> nan M particle-steps/s'\n"),
+                 "printed no rate for 2 threads");
+  // With --yardstick as well: which one is meant is not for the command to guess.
+  const RunResult both =
+      run_mpm({"bench", "perf", "--smoke", "--yardstick", "10", "--yardstick-script",
+               script("ok.sh", "echo 'threads 2 x -> 8.00 M particle-steps/s'\n").string()});
+  EXPECT_EQ(both.exit_code, 2) << both.err;
+  EXPECT_EQ(std::count(both.err.begin(), both.err.end(), '\n'), 1) << both.err;
+  EXPECT_TRUE(contains(both.err, "--yardstick")) << both.err;
+}
+
 TEST_F(CommandLine, RejectsThreadCountOutOfRange) {
   write_scene(scene_2d());
   const RunResult r = run_mpm({"run", scene_file_.string(), "-o", out_dir_.string(), "-j", "0"});
