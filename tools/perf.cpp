@@ -38,6 +38,12 @@ namespace {
 
 using json = nlohmann::json;
 
+/// The median of `values` (the upper one of an even count), which must not be empty.
+double median_of(std::vector<double> values) {
+  std::sort(values.begin(), values.end());
+  return values[values.size() / 2];
+}
+
 /// One timed scene: milliseconds per step, per phase, and the couplings' work per step.
 struct Timing {
   std::size_t particles = 0;
@@ -88,9 +94,7 @@ class Timed {
   Timing result() {
     if (solver_->fault()) t_.fault = *solver_->fault();
     if (rounds_.empty()) return t_;
-    std::vector<double> sorted = rounds_;
-    std::sort(sorted.begin(), sorted.end());
-    t_.ms_per_step = sorted[sorted.size() / 2];
+    t_.ms_per_step = median_of(rounds_);
     t_.phases = perf::ms_per_step(solver_->phase_times(), before_, steps_);
     const perf::SolveCount solves = perf::solve_count(*solver_);
     t_.factorizations = (solves.factorizations - solves0_.factorizations) / steps_;
@@ -176,11 +180,9 @@ class Yardstick {
                 std::to_string(threads_) + " ... -> R M particle-steps/s\")");
   }
 
-  [[nodiscard]] double median() const {
-    std::vector<double> sorted = rates_;
-    std::sort(sorted.begin(), sorted.end());
-    return sorted[sorted.size() / 2];
-  }
+  [[nodiscard]] double median() const { return median_of(rates_); }
+  /// True once a run has failed (error() says why); later rounds then do not run it.
+  [[nodiscard]] bool failed() const { return !error_.empty(); }
   [[nodiscard]] const std::vector<double>& rates() const { return rates_; }
   [[nodiscard]] const std::string& error() const { return error_; }
   [[nodiscard]] const std::filesystem::path& script() const { return script_; }
@@ -293,9 +295,8 @@ int perf_command(const PerfArgs& args) {
     standard.push_back(std::make_unique<Timed>(scene, settle, 1));
   }
   // The yardstick's later rounds run before the standard block's (its first ran above).
-  bool yardstick_ok = true;
   const std::vector<Timing> blocks = time_together(standard, rounds, steps, [&](int r) {
-    if (r > 0 && yardstick && yardstick_ok) yardstick_ok = yardstick->round();
+    if (r > 0 && yardstick && !yardstick->failed()) yardstick->round();
   });
   standard.clear();  // the floors and the scaling runs need the memory
   double yardstick_rate = args.yardstick;
@@ -303,7 +304,7 @@ int perf_command(const PerfArgs& args) {
     json entry = {{"script", yardstick->script().string()},
                   {"threads", threads},
                   {"rates", yardstick->rates()}};
-    if (yardstick_ok) {
+    if (!yardstick->failed()) {
       yardstick_rate = yardstick->median();
       entry["median"] = yardstick_rate;
       const auto [lo, hi] =
