@@ -667,6 +667,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       if (options.halt_after_steps >= 0 && step >= options.halt_after_steps) return kExitOk;
     }
     if (!last_written && !failure) writer->write(sim->frame(t, step));
+    writer->flush();
   } catch (const std::exception& e) {
     std::cerr << "\nmpm: " << out.string() << ": " << e.what() << '\n';
     return kExitIo;

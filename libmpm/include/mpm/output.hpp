@@ -29,8 +29,12 @@ struct ParticleFrame {
 /// frame files (so h5py or read_frame() open it like one file), and OUT.xmf for ParaView. No file
 /// is changed once written: each is written to a temporary file and renamed, so a run killed at
 /// any moment leaves every frame before it intact and readable, and OUT.h5 and OUT.xmf as they
-/// were after the last frame. (HDF5 changes a file in place, and a process killed while it did
-/// could leave the links of a single growing file pointing at garbage.)
+/// were after their last rewrite. (HDF5 changes a file in place, and a process killed while it
+/// did could leave the links of a single growing file pointing at garbage.) The indexes list every
+/// frame, so they are rewritten after each frame only while that is cheap: for the first 256
+/// frames, then whenever the time spent rewriting them stays within 2% of the writer's wall clock
+/// (a run of thousands of frames would otherwise spend most of its output time on them), and by
+/// flush(). A killed run's indexes may lack its last few frames; a resume rebuilds them.
 class ParticleWriter {
  public:
   /// Creates (truncates) the indexes and the frame directory (its parent must exist), removing
@@ -46,9 +50,15 @@ class ParticleWriter {
   ParticleWriter(const ParticleWriter&) = delete;
   ParticleWriter& operator=(const ParticleWriter&) = delete;
 
-  /// Writes one frame file (synced to the disk before it takes its name), then both indexes.
+  /// Writes one frame file (synced to the disk before it takes its name), then both indexes if
+  /// they are due (above).
   void write(const ParticleFrame& frame);
+  /// Rewrites both indexes if they lack a frame written. Throws std::runtime_error naming the
+  /// file on failure. The destructor flushes too, but cannot report a failure.
+  void flush();
   [[nodiscard]] std::size_t frames_written() const;
+  /// The frames the indexes on the disk list (frames_written() after flush()).
+  [[nodiscard]] std::size_t frames_indexed() const;
 
  private:
   struct Impl;
