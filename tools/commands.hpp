@@ -53,14 +53,15 @@ struct BenchArgs {
 };
 
 struct PerfArgs {
-  int cells = 32;          ///< the block's cells per side (8 particles per cell)
-  int steps = 20;          ///< timed steps per round (after 5 settling steps)
-  int rounds = 5;          ///< rounds per scene, interleaved with the other scenes' (median)
+  int cells = 32;  ///< the block's cells per side (8 particles per cell)
+  int steps = 20;  ///< timed steps per round (after 5 settling steps)
+  /// Rounds per scene, interleaved with the other scenes' (median); unset: 5, or 1 with `smoke`.
+  std::optional<int> rounds;
   double yardstick = 0.0;  ///< > 0: the yardstick's M particle-steps/s, same session
   /// Non-empty: the yardstick's script (../shared/tools/yardstick/run.sh), run once per round
   /// of the standard block, interleaved with its rounds (instead of `yardstick`).
   std::filesystem::path yardstick_script;
-  bool smoke = false;  ///< a tiny block, 1 round of 2 steps (the test suite's run)
+  bool smoke = false;  ///< a tiny block, 2 steps a round (the test suite's run)
   std::filesystem::path json_file;
 };
 

@@ -144,8 +144,8 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1, 10000));
   bench
       ->add_option("--rounds", perf_args.rounds,
-                   "perf: rounds per scene, interleaved with the other scenes' (default 5; the "
-                   "median is reported)")
+                   "perf: rounds per scene, interleaved with the other scenes' (default 5, 1 with "
+                   "--smoke; the median is reported)")
       ->check(CLI::Range(1, 100));
   CLI::Option* yardstick =
       bench

@@ -249,7 +249,7 @@ std::string fixed(double value, int digits = 2) {
 int perf_command(const PerfArgs& args) {
   const int cells = args.smoke ? 6 : args.cells;
   const int steps = args.smoke ? 2 : args.steps;
-  const int rounds = args.smoke ? 1 : args.rounds;
+  const int rounds = args.rounds.value_or(args.smoke ? 1 : 5);
   const int settle = 5;
   const int threads = static_cast<int>(
       tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism));

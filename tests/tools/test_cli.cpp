@@ -607,6 +607,35 @@ TEST_F(CommandLine, BenchPerfRunsTheYardsticksScriptAndDividesByItsRate) {
   }
 }
 
+// A yardstick whose first run gives a rate and a later one fails: the benchmark goes on and its
+// other results stand, but no throughput ratio is given (none from a median the failure would
+// have changed), the JSON says why, and the exit status is 1. Its runs stop at the failure.
+TEST_F(CommandLine, BenchPerfDropsTheRatioWhenALaterYardstickRunFails) {
+  const fs::path count = dir_ / "runs";
+  const fs::path script = dir_ / "second_fails.sh";
+  write_text(script, "#!/bin/sh\necho run >> '" + count.string() + "'\n" + "if [ $(wc -l < '" +
+                         count.string() + "') -gt 1 ]; then exit 4; fi\n" +
+                         "echo 'threads 2 particles 262144 steps 30 time 1.0 s -> 8.00 M "
+                         "particle-steps/s'\n");
+  fs::permissions(script, fs::perms::owner_all);
+  const fs::path report = dir_ / "perf.json";
+  const RunResult r = run_mpm({"bench", "perf", "--smoke", "--rounds", "3", "-j", "2",
+                               "--yardstick-script", script.string(), "--json", report.string()});
+  EXPECT_EQ(r.exit_code, 1) << r.err;
+  EXPECT_EQ(read_text(count), "run\nrun\n");  // the first, the failed second, no third
+  EXPECT_TRUE(contains(r.err, "exited with status 4")) << r.err;
+  EXPECT_TRUE(contains(r.err, "no throughput ratio")) << r.err;
+  const json perf = json::parse(read_text(report));
+  EXPECT_EQ(perf["rounds"].get<int>(), 3);
+  EXPECT_EQ(perf["yardstick"]["rates"].size(), 1U);
+  EXPECT_FALSE(perf["yardstick"].contains("median"));
+  EXPECT_TRUE(contains(perf["yardstick"]["error"].get<std::string>(), "exited with status 4"));
+  for (const char* update : {"standard_musl", "standard_usl"}) {
+    EXPECT_FALSE(perf[update].contains("yardstick_ratio")) << update;
+    EXPECT_GT(perf[update]["all_threads"]["particle_steps_per_second"].get<double>(), 0.0);
+  }
+}
+
 // A yardstick that cannot be run, fails or prints no rate for the thread count: one line naming
 // the script and why, exit 2, and the JSON file as it was (nothing timed, nothing written).
 TEST_F(CommandLine, BenchPerfRefusesAYardstickScriptThatGivesNoRate) {
