@@ -38,6 +38,7 @@
 #include "cases.hpp"
 #include "commands.hpp"
 #include "mpm/run.hpp"
+#include "process.hpp"
 
 namespace mpm::tools {
 namespace {
@@ -84,9 +85,9 @@ bool plot(const BenchArgs& args, const std::filesystem::path& csv) {
   // come first on PATH).
   const std::string python =
       std::filesystem::exists("/usr/bin/python3") ? "/usr/bin/python3" : "python3";
-  const std::string command = python + " '" + script.string() + "' " + args.kind + " '" +
-                              csv.string() + "' '" + args.plot_file.string() + "'";
-  if (std::system(command.c_str()) != 0) {
+  const ProcessResult run = run_process(
+      {python, script.string(), args.kind, csv.string(), args.plot_file.string()}, false);
+  if (!run.error.empty() || run.exit_code != 0) {
     std::cerr << "mpm bench: --plot " << args.plot_file.string() << ": " << script.string()
               << " failed (it needs python3-matplotlib: scripts/bench.sh installs it)\n";
     return false;

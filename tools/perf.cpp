@@ -6,7 +6,6 @@
 // round of the standard block (--yardstick-script), or its throughput, measured in the same
 // session, is passed in (--yardstick), to print the throughput ratio.
 
-#include <sys/wait.h>
 #include <tbb/global_control.h>
 #include <tbb/info.h>
 #include <unistd.h>
@@ -32,6 +31,7 @@
 #include "mpm/run.hpp"
 #include "mpm/solver.hpp"
 #include "perf_scenes.hpp"
+#include "process.hpp"
 
 namespace mpm::tools {
 namespace {
@@ -149,25 +149,14 @@ class Yardstick {
     std::error_code ec;
     if (!std::filesystem::is_regular_file(script_, ec)) return fail("is not a file");
     if (::access(script_.c_str(), X_OK) != 0) return fail("is not executable");
-    // The path in single quotes for the shell (a quote in it closed, escaped and reopened).
-    std::string command = "'";
-    for (const char c : script_.string())
-      command += c == '\'' ? std::string("'\\''") : std::string(1, c);
-    command += "' 2>&1";
-    std::fflush(nullptr);
-    FILE* pipe = ::popen(command.c_str(), "r");
-    if (pipe == nullptr) return fail("cannot be started");
-    std::string output;
-    char buffer[512];
-    while (std::fgets(buffer, sizeof buffer, pipe) != nullptr) output += buffer;
-    const int status = ::pclose(pipe);
-    if (status != 0) {
-      const int code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-      return fail(code >= 0 ? "exited with status " + std::to_string(code)
-                            : std::string("was killed"));
+    const ProcessResult run = run_process({script_.string()}, true);
+    if (!run.error.empty()) return fail("cannot be started (" + run.error + ")");
+    if (run.exit_code != 0) {
+      return fail(run.exit_code >= 0 ? "exited with status " + std::to_string(run.exit_code)
+                                     : std::string("was killed"));
     }
     static const std::regex line(R"(threads (\d+) .*-> ([0-9.eE+-]+) M particle-steps/s)");
-    std::istringstream lines(output);
+    std::istringstream lines(run.output);
     for (std::string text; std::getline(lines, text);) {
       std::smatch m;
       if (!std::regex_search(text, m, line) || m[1].str() != std::to_string(threads_)) continue;
