@@ -280,14 +280,14 @@ inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::Vect
 }
 
 /// x = A^-1 b for every column of b at once with the factorisation in `solver`: the operations
-/// of solver.solve(b) on each column (P, L, D^-1, L^T, P^-1, each entry's update in the same
-/// order), but the columns side by side in `work` (scratch, row-major), so that each entry of
-/// L is read once for all of them rather than once per column (the floor scene's Phi coupling
-/// 9.5 -> 9.0 ms against a column per core, Enhanced's 19.5 -> 16.6 ms against a column at a
-/// time; docs/performance.md). A factor whose elimination tree splits (SubtreeSplit) has its
-/// two sides solved on two threads; the sums are then grouped differently from Eigen's (round-off
-/// apart), the same for any thread count. At most 3 columns. No allocation once `work` and x
-/// have held this size.
+/// of solver.solve(b) on each column (P, L, D^-1, L^T, P^-1), but the columns side by side in
+/// `work` (scratch, row-major), so that each entry of L is read once for all of them rather
+/// than once per column (the floor scene's Phi coupling 9.5 -> 9.0 ms against a column per
+/// core, Enhanced's 19.5 -> 16.6 ms against a column at a time; docs/performance.md). The
+/// backward solve sums each row in four partial sums, and a factor whose elimination tree
+/// splits (SubtreeSplit) has its two sides solved on two threads: the sums are grouped
+/// differently from Eigen's (round-off apart), the same for any thread count. At most 3
+/// columns. No allocation once `work` and x have held this size.
 template <class Rhs>
 void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<double>& work) {
   const Eigen::Index n = b.rows();
@@ -330,16 +330,35 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
         for (int c = 0; c < C; ++c) xi[c] -= xj[c] * value[p];
       }
     };
-    // Backward: row i of L^T against the rows below it (final by then).
+    // Backward: row i of L^T against the rows below it (final by then). Its entries are summed
+    // into four partial sums, every fourth entry each: with one sum every multiply-add waited
+    // for the one before (the floor's Enhanced coupling 46-49 -> 38-41 ms a step;
+    // docs/performance.md). A column's rows increase, so those at or above the diagonal (none
+    // in Eigen's LDL^T, whose diagonal is D) come first.
     auto backward = [&](int i) {
-      double xi[C];
+      double xi[C], yi[C] = {}, zi[C] = {}, wi[C] = {};
       for (int c = 0; c < C; ++c) xi[c] = rows[static_cast<std::size_t>(i) * C + c];
-      for (int p = outer[i]; p < outer[i + 1]; ++p) {
-        if (inner[p] <= i) continue;
+      int p = outer[i];
+      const int end = outer[i + 1];
+      while (p < end && inner[p] <= i) ++p;
+      for (; p + 3 < end; p += 4) {
+        const double* xk = &rows[static_cast<std::size_t>(inner[p]) * C];
+        const double* xl = &rows[static_cast<std::size_t>(inner[p + 1]) * C];
+        const double* xm = &rows[static_cast<std::size_t>(inner[p + 2]) * C];
+        const double* xn = &rows[static_cast<std::size_t>(inner[p + 3]) * C];
+        for (int c = 0; c < C; ++c) {
+          xi[c] -= value[p] * xk[c];
+          yi[c] += value[p + 1] * xl[c];
+          zi[c] += value[p + 2] * xm[c];
+          wi[c] += value[p + 3] * xn[c];
+        }
+      }
+      for (; p < end; ++p) {
         const double* xk = &rows[static_cast<std::size_t>(inner[p]) * C];
         for (int c = 0; c < C; ++c) xi[c] -= value[p] * xk[c];
       }
-      for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(i) * C + c] = xi[c];
+      for (int c = 0; c < C; ++c)
+        rows[static_cast<std::size_t>(i) * C + c] = xi[c] - ((yi[c] + zi[c]) + wi[c]);
     };
     constexpr int kAll = std::numeric_limits<int>::max();
     const int count = static_cast<int>(n);
