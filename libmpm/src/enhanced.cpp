@@ -449,14 +449,20 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
     j.setZero(k, D);
     for (Eigen::Index c = 0; c < nc; ++c)
       j.row(rows[c].first) += x[nv + c] * rows[c].second.transpose();
-    yv.noalias() = e.schur * v;
-    yv.noalias() -= e.coupled_r * j;
+    // The two halves read only v and j: one on each core.
+    tbb::parallel_invoke(
+        [&] {
+          yv.noalias() = e.schur * v;
+          yv.noalias() -= e.coupled_r * j;
+        },
+        [&] {
+          t.noalias() = e.coupled_r.transpose() * v;
+          t.noalias() += e.grid_rr * j;
+        });
     y.resize(nv + nc);
     for (Eigen::Index c = 0; c < ns; ++c) {
       for (int d = 0; d < D; ++d) y[c * D + d] = yv(c, d);
     }
-    t.noalias() = e.coupled_r.transpose() * v;
-    t.noalias() += e.grid_rr * j;
     for (Eigen::Index c = 0; c < nc; ++c) {
       y[nv + c] = -rows[c].second.dot(t.row(rows[c].first).transpose()) - e.kkt_shift * x[nv + c];
     }
