@@ -1,5 +1,6 @@
 #include "process.hpp"
 
+#include <fcntl.h>
 #include <spawn.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -22,8 +23,10 @@ ProcessResult run_process(const std::vector<std::string>& argv, bool capture) {
   args.reserve(argv.size() + 1);
   for (const std::string& a : argv) args.push_back(const_cast<char*>(a.c_str()));
   args.push_back(nullptr);
+  // Close-on-exec: no other program started meanwhile holds the pipe open (the child's copies
+  // on its standard output and error, made by dup2, stay open).
   int pipe_ends[2] = {-1, -1};
-  if (capture && ::pipe(pipe_ends) != 0) {
+  if (capture && ::pipe2(pipe_ends, O_CLOEXEC) != 0) {
     result.error = std::strerror(errno);
     return result;
   }

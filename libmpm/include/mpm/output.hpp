@@ -32,9 +32,9 @@ struct ParticleFrame {
 /// were after their last rewrite. (HDF5 changes a file in place, and a process killed while it
 /// did could leave the links of a single growing file pointing at garbage.) The indexes list every
 /// frame, so they are rewritten after each frame only while that is cheap: for the first 256
-/// frames, then whenever the time spent rewriting them stays within 2% of the writer's wall clock
-/// (a run of thousands of frames would otherwise spend most of its output time on them), and by
-/// flush(). A killed run's indexes may lack its last few frames; a resume rebuilds them.
+/// frames, then whenever the time spent rewriting them since stays within 2% of the wall clock
+/// since (a run of thousands of frames would otherwise spend most of its output time on them),
+/// and by flush(). A killed run's indexes may lack its last few frames; a resume rebuilds them.
 class ParticleWriter {
  public:
   /// Creates (truncates) the indexes and the frame directory (its parent must exist), removing
