@@ -87,7 +87,7 @@ std::filesystem::path frame_directory(const std::filesystem::path& h5_path) {
 struct ParticleWriter::Impl {
   using Clock = std::chrono::steady_clock;
   // Both indexes list every frame, so rewriting them costs in proportion to the frames written:
-  // after every frame that made a run's output quadratic in its frames (17 ms a frame at 3,000
+  // after every frame that made a run's output quadratic in its frames (19.5 ms a frame at 3,000
   // frames, 2.7 ms at 500: docs/performance.md). They are rewritten after every frame while the
   // run has at most kAlwaysIndexed (a few milliseconds at most), later only while the time spent
   // rewriting them since then, the next rewrite included, stays within kIndexShare of the wall
