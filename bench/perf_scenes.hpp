@@ -107,12 +107,17 @@ inline double heap_bytes() {
 /// (Simulation::coupling_work()).
 struct SolveCount {
   double factorizations = 0.0, refinements = 0.0;
+  /// Seconds (CouplingWork): assembly, analysis and numeric factorisation, solves.
+  double assembly = 0.0, factorizing = 0.0, solves = 0.0;
 };
 inline SolveCount solve_count(const Simulation& sim) {
   SolveCount count;
   for (const CouplingWork& c : sim.coupling_work()) {
     count.factorizations += static_cast<double>(c.factorizations);
     count.refinements += static_cast<double>(c.refinement_passes);
+    count.assembly += c.assembly_seconds;
+    count.factorizing += c.analysis_seconds + c.factorization_seconds;
+    count.solves += c.solve_seconds;
   }
   return count;
 }

@@ -183,6 +183,38 @@ void find_corners(DualWall<D>& w) {
   w.corner_gap.assign(w.corner_normals.size(), std::numeric_limits<double>::infinity());
 }
 
+// The seconds a wall's solvers have spent factorising (analysis and numeric).
+template <int D>
+double factorising_seconds(const DualWall<D>& w) {
+  double seconds = 0.0;
+  for (const SparseLdlt* s : {w.schur.get(), w.enh.schur_solver.get(), w.enh.kkt_solver.get()}) {
+    seconds += s->analysis_seconds() + s->numeric_seconds();
+  }
+  return seconds;
+}
+
+// Adds the wall-clock time of its scope to `seconds`, less what the wall's solvers spent
+// factorising meanwhile (they count that themselves).
+template <int D>
+class PartTimer {
+ public:
+  PartTimer(const DualWall<D>& w, double& seconds)
+      : w_(w), seconds_(seconds), factorising_(factorising_seconds(w)) {}
+  PartTimer(const PartTimer&) = delete;
+  PartTimer& operator=(const PartTimer&) = delete;
+  ~PartTimer() {
+    const double elapsed =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+    seconds_ += elapsed - (factorising_seconds(w_) - factorising_);
+  }
+
+ private:
+  const DualWall<D>& w_;
+  double& seconds_;
+  std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
+  double factorising_;
+};
+
 }  // namespace
 
 template <int D>
@@ -203,6 +235,12 @@ std::vector<CouplingWork> Solver<D>::coupling_work() const {
     }
     c.factorizations = w.factorizations + w.enh.factorizations;
     c.refinement_passes = w.refinements + w.enh.refinements;
+    c.assembly_seconds = w.assembly_seconds;
+    c.solve_seconds = w.solve_seconds;
+    for (const SparseLdlt* s : {w.schur.get(), w.enh.schur_solver.get(), w.enh.kkt_solver.get()}) {
+      c.analysis_seconds += s->analysis_seconds();
+      c.factorization_seconds += s->numeric_seconds();
+    }
     work.push_back(std::move(c));
   }
   return work;
@@ -844,9 +882,14 @@ void Solver<D>::layer_couple(bool remapped) {
     if (w.layer_particles == 0) continue;  // nothing in the layer: the grids do not interact
     if (w.enhanced) {
       if (remapped) {
+        const PartTimer<D> timer(w, w.solve_seconds);
         enhanced_solve(w, grid.velocity, w.momentum, w.velocity, true, false);
       } else {
-        enhanced_assemble(w);
+        {
+          const PartTimer<D> timer(w, w.assembly_seconds);
+          enhanced_assemble(w);
+        }
+        const PartTimer<D> timer(w, w.solve_seconds);
         // The coupled v^n only for FLIP's increment (v^{n+1} - v^n): PIC and APIC gather v^{n+1},
         // and MUSL's remap solves the old velocities anew (as the Blending walls below).
         if (scene_.transfer != Transfer::apic && scene_.flip_blend > 0.0) {
@@ -860,6 +903,7 @@ void Solver<D>::layer_couple(bool remapped) {
     if (!remapped) {
       // Assemble the active coupling and its Schur complement once per step; the MUSL remap
       // reuses it (the masses do not change).
+      const PartTimer<D> timer(w, w.assembly_seconds);
       for (const int node : w.layer_rows) w.layer_row_of[node] = -1;
       w.active_multipliers.clear();
       w.grid_rows.clear();
@@ -1035,6 +1079,7 @@ void Solver<D>::layer_couple(bool remapped) {
         }
       }
     };
+    const PartTimer<D> timer(w, w.solve_seconds);
     if (remapped) {
       solve(grid.velocity, w.velocity);
     } else {

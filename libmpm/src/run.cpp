@@ -717,7 +717,12 @@ int run_scene(const Scene& scene, const RunOptions& options) {
                                    {"multipliers", c.multipliers},
                                    {"corner_nodes", c.corner_nodes},
                                    {"factorizations", c.factorizations},
-                                   {"refinement_passes", c.refinement_passes}};
+                                   {"refinement_passes", c.refinement_passes},
+                                   {"seconds",
+                                    {{"assembly", c.assembly_seconds},
+                                     {"analysis", c.analysis_seconds},
+                                     {"factorization", c.factorization_seconds},
+                                     {"solves", c.solve_seconds}}}};
   }
   // The standard grid's memory: its node arrays are backed only where particles have been.
   const mpm::GridMemory g = sim->grid_memory();

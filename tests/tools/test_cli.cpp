@@ -308,6 +308,17 @@ TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
   EXPECT_EQ(coupling.at("multipliers").get<int>(), 11);
   EXPECT_GE(coupling.at("factorizations").get<int>(), 1);
   EXPECT_GE(coupling.at("refinement_passes").get<int>(), 0);
+  // Where its time went: four parts, one after another on the thread that couples, within the
+  // steps; the first factorisation orders S and factorises it, both timed.
+  const json seconds = coupling.at("seconds");
+  double parts = 0.0;
+  for (const char* part : {"assembly", "analysis", "factorization", "solves"}) {
+    EXPECT_GE(seconds.at(part).get<double>(), 0.0) << part;
+    parts += seconds.at(part).get<double>();
+  }
+  EXPECT_GT(seconds.at("analysis").get<double>(), 0.0);
+  EXPECT_GT(seconds.at("factorization").get<double>(), 0.0);
+  EXPECT_LE(parts, read_summary().at("phase_seconds").at("steps_total").get<double>());
   // Merged within h: the greedy pass from the floor's end node makes pairs, 11 -> 6.
   scene["walls"][0]["multiplier_radius"] = 1.0;
   write_scene(scene);

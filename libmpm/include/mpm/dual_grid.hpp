@@ -6,6 +6,7 @@
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <array>
+#include <chrono>
 #include <memory>
 #include <string>
 #include <vector>
@@ -62,20 +63,32 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     factorize(a);
   }
   void analyzePattern(const Eigen::SparseMatrix<double>& a) {
+    const auto start = std::chrono::steady_clock::now();
     Base::analyzePattern(a);
     split_stale_ = true;
+    analysis_seconds_ += since(start);
   }
   void factorize(const Eigen::SparseMatrix<double>& a) {
+    const auto start = std::chrono::steady_clock::now();
     Base::factorize(a);
     if (split_stale_ && info() == Eigen::Success) {
       split_ = split_subtrees(matrixL().nestedExpression());
       split_stale_ = false;
     }
+    numeric_seconds_ += since(start);
   }
+  /// Wall-clock seconds spent so far in analyzePattern() (the fill-reducing ordering and the
+  /// elimination tree) and in factorize() (the numeric factorisation and the solves' split).
+  [[nodiscard]] double analysis_seconds() const { return analysis_seconds_; }
+  [[nodiscard]] double numeric_seconds() const { return numeric_seconds_; }
 
  private:
+  static double since(std::chrono::steady_clock::time_point start) {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  }
   SubtreeSplit split_;
   bool split_stale_ = true;
+  double analysis_seconds_ = 0.0, numeric_seconds_ = 0.0;
 };
 
 /// Scratch of product_into() (sparse_pattern.hpp), kept between calls, with the pattern of
@@ -275,6 +288,10 @@ struct DualWall {
   int refine_wait = 0, refine_backoff = 0;
   std::size_t factorizations = 0;  ///< Schur factorisations so far (for benchmarks)
   std::size_t refinements = 0;     ///< refinement passes against an earlier factorisation
+  /// Wall-clock seconds of the coupling's assembly (the active coupling and S, or Enhanced's
+  /// blocks) and of its solves (refinement included), both without the factorisations made
+  /// inside them, which the wall's solvers time themselves (SparseLdlt; CouplingWork).
+  double assembly_seconds = 0.0, solve_seconds = 0.0;
   /// The coupling's scratch, kept from step to step so that a step that does not factorise
   /// allocates nothing (issue 9): the active coupling's entries, S's diagonal, and the solve's
   /// blocks (one row per kept row or active multiplier, one column per component).

@@ -68,6 +68,15 @@ struct CouplingWork {
   std::size_t corner_nodes = 0;
   std::size_t factorizations = 0;
   std::size_t refinement_passes = 0;
+  /// Where the coupling's time went (wall clock, seconds): forming the active coupling and
+  /// its matrices, ordering them for factorisation (the fill-reducing analysis, when the
+  /// pattern is new), factorising them, and solving (refinement included). The coupling runs
+  /// beside the free particles' gather, so these can add up to more than the coupling phase.
+  /// (S formed again after a refinement that failed counts with the solves.)
+  double assembly_seconds = 0.0;
+  double analysis_seconds = 0.0;
+  double factorization_seconds = 0.0;
+  double solve_seconds = 0.0;
 };
 
 /// The standard grid's memory (bytes over its five node arrays), sampled every 16 steps.
