@@ -183,13 +183,17 @@ void find_corners(DualWall<D>& w) {
   w.corner_gap.assign(w.corner_normals.size(), std::numeric_limits<double>::infinity());
 }
 
+// A wall's factorisations: the Phi coupling's S (Blending), Enhanced's K and contact system.
+template <int D>
+std::array<const SparseLdlt*, 3> solvers_of(const DualWall<D>& w) {
+  return {w.schur.get(), w.enh.schur_solver.get(), w.enh.kkt_solver.get()};
+}
+
 // The seconds a wall's solvers have spent factorising (analysis and numeric).
 template <int D>
 double factorising_seconds(const DualWall<D>& w) {
   double seconds = 0.0;
-  for (const SparseLdlt* s : {w.schur.get(), w.enh.schur_solver.get(), w.enh.kkt_solver.get()}) {
-    seconds += s->analysis_seconds() + s->numeric_seconds();
-  }
+  for (const SparseLdlt* s : solvers_of(w)) seconds += s->analysis_seconds() + s->numeric_seconds();
   return seconds;
 }
 
@@ -237,7 +241,7 @@ std::vector<CouplingWork> Solver<D>::coupling_work() const {
     c.refinement_passes = w.refinements + w.enh.refinements;
     c.assembly_seconds = w.assembly_seconds;
     c.solve_seconds = w.solve_seconds;
-    for (const SparseLdlt* s : {w.schur.get(), w.enh.schur_solver.get(), w.enh.kkt_solver.get()}) {
+    for (const SparseLdlt* s : solvers_of(w)) {
       c.analysis_seconds += s->analysis_seconds();
       c.factorization_seconds += s->numeric_seconds();
     }

@@ -72,7 +72,8 @@ struct CouplingWork {
   /// its matrices, ordering them for factorisation (the fill-reducing analysis, when the
   /// pattern is new), factorising them, and solving (refinement included). The coupling runs
   /// beside the free particles' gather, so these can add up to more than the coupling phase.
-  /// (S formed again after a refinement that failed counts with the solves.)
+  /// (S formed again after a refinement that failed counts with the solves; a resumed run's
+  /// factorisations include those of the saved matrices it refactorises.)
   double assembly_seconds = 0.0;
   double analysis_seconds = 0.0;
   double factorization_seconds = 0.0;
