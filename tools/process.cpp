@@ -40,7 +40,13 @@ ProcessResult run_process(const std::vector<std::string>& argv, bool capture) {
   }
   std::fflush(nullptr);  // what this process printed comes before what the child prints
   pid_t pid = 0;
-  const int spawned = ::posix_spawnp(&pid, args[0], &actions, nullptr, args.data(), environ);
+  int spawned = ::posix_spawnp(&pid, args[0], &actions, nullptr, args.data(), environ);
+  if (spawned == ENOEXEC) {
+    // A script without a "#!" line: run it with the shell, as execvp() and a shell would.
+    std::vector<char*> shell{const_cast<char*>("/bin/sh")};
+    shell.insert(shell.end(), args.begin(), args.end());
+    spawned = ::posix_spawn(&pid, shell[0], &actions, nullptr, shell.data(), environ);
+  }
   posix_spawn_file_actions_destroy(&actions);
   if (capture) ::close(pipe_ends[1]);
   if (spawned != 0) {

@@ -675,6 +675,12 @@ TEST_F(CommandLine, BenchPerfRefusesAYardstickScriptThatGivesNoRate) {
   };
   expect_refused(script("fails.sh", "echo 'threads 2 x -> 8.00 M particle-steps/s'\nexit 3\n"),
                  "exited with status 3");
+  // Without a "#!" line the shell runs it (as execvp() would), so its own failure is reported,
+  // not the kernel's "Exec format error".
+  const fs::path bare = dir_ / "no_shebang.sh";
+  write_text(bare, "echo 'threads 2 x -> 8.00 M particle-steps/s'\nexit 5\n");
+  fs::permissions(bare, fs::perms::owner_all);
+  expect_refused(bare, "exited with status 5");
   expect_refused(script("one_thread.sh", "echo 'threads 1 x -> 4.00 M particle-steps/s'\n"),
                  "printed no rate for 2 threads");
   expect_refused(script("garbage.sh", "echo 'threads 2 x -> nan M particle-steps/s'\n"),
