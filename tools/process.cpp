@@ -41,8 +41,9 @@ ProcessResult run_process(const std::vector<std::string>& argv, bool capture) {
   std::fflush(nullptr);  // what this process printed comes before what the child prints
   pid_t pid = 0;
   int spawned = ::posix_spawnp(&pid, args[0], &actions, nullptr, args.data(), environ);
-  if (spawned == ENOEXEC) {
-    // A script without a "#!" line: run it with the shell, as execvp() and a shell would.
+  if (spawned == ENOEXEC && argv[0].find('/') != std::string::npos) {
+    // A script without a "#!" line, named by its path: run it with the shell, as execvp() and
+    // a shell would (one found on PATH would need its resolved path; none is started so).
     std::vector<char*> shell{const_cast<char*>("/bin/sh")};
     shell.insert(shell.end(), args.begin(), args.end());
     spawned = ::posix_spawn(&pid, shell[0], &actions, nullptr, shell.data(), environ);

@@ -14,8 +14,8 @@ struct ProcessResult {
 };
 
 /// Runs argv[0] (looked up on PATH unless it holds a '/') with the arguments argv and waits for
-/// it; a script without a "#!" line is run by /bin/sh (as execvp() does). With `capture`, its
-/// standard output and standard error are returned instead of shown.
+/// it; a script without a "#!" line given by its path is run by /bin/sh (as execvp() does).
+/// With `capture`, its standard output and standard error are returned instead of shown.
 ProcessResult run_process(const std::vector<std::string>& argv, bool capture);
 
 }  // namespace mpm::tools
