@@ -80,14 +80,14 @@ void BM_FloorStep3D(benchmark::State& state) {
                           static_cast<int64_t>(solver.particle_count()));
   state.counters["particles"] = static_cast<double>(solver.particle_count());
   if (!solver.dual_walls().empty()) {
-    const mpm::perf::SolveCount solves = mpm::perf::solve_count(solver);
-    state.counters["factorizations_per_step"] =
-        (solves.factorizations - solves0.factorizations) / steps;
-    state.counters["refinements_per_step"] = (solves.refinements - solves0.refinements) / steps;
+    const mpm::perf::SolveCount per =
+        mpm::perf::per_step(mpm::perf::solve_count(solver), solves0, steps);
+    state.counters["factorizations_per_step"] = per.factorizations;
+    state.counters["refinements_per_step"] = per.refinements;
     // The coupling's parts, milliseconds per step (wall clock; it runs beside the gather).
-    state.counters["ms_assembly"] = 1e3 * (solves.assembly - solves0.assembly) / steps;
-    state.counters["ms_factorizing"] = 1e3 * (solves.factorizing - solves0.factorizing) / steps;
-    state.counters["ms_solves"] = 1e3 * (solves.solves - solves0.solves) / steps;
+    state.counters["ms_assembly"] = per.assembly;
+    state.counters["ms_factorizing"] = per.factorizing;
+    state.counters["ms_solves"] = per.solves;
   }
   state.counters["in_layer"] =
       static_cast<double>(in_layer) / static_cast<double>(solver.particle_count());

@@ -103,11 +103,12 @@ inline double heap_bytes() {
   return static_cast<double>(info.uordblks + info.hblkhd);
 }
 
-/// The dual-grid walls' factorisations and refinement passes so far, summed over the walls
-/// (Simulation::coupling_work()).
+/// The dual-grid walls' factorisations, refinement passes and time by part so far, summed over
+/// the walls (Simulation::coupling_work()); per_step() makes it per step.
 struct SolveCount {
   double factorizations = 0.0, refinements = 0.0;
-  /// Seconds (CouplingWork): assembly, analysis and numeric factorisation, solves.
+  /// Seconds (CouplingWork): assembly, analysis and numeric factorisation, solves (per_step():
+  /// milliseconds per step).
   double assembly = 0.0, factorizing = 0.0, solves = 0.0;
 };
 inline SolveCount solve_count(const Simulation& sim) {
@@ -120,6 +121,18 @@ inline SolveCount solve_count(const Simulation& sim) {
     count.solves += c.solve_seconds;
   }
   return count;
+}
+
+/// The couplings' work per step between two counts `steps` steps apart: factorisations and
+/// refinement passes per step, and (as ms_per_step()) milliseconds per step in each part.
+inline SolveCount per_step(const SolveCount& after, const SolveCount& before, double steps) {
+  SolveCount per;
+  per.factorizations = (after.factorizations - before.factorizations) / steps;
+  per.refinements = (after.refinements - before.refinements) / steps;
+  for (auto member : {&SolveCount::assembly, &SolveCount::factorizing, &SolveCount::solves}) {
+    per.*member = (after.*member - before.*member) * 1e3 / steps;
+  }
+  return per;
 }
 
 /// Milliseconds per step in each phase between two readings of the phase timers `steps` steps

@@ -50,9 +50,8 @@ struct Timing {
   double ms_per_step = 0.0;         ///< the median of the rounds
   double bytes_per_particle = 0.0;  ///< heap grown while the solver was made and stepped once
   PhaseTimes phases;                ///< milliseconds per step, over all rounds
-  double factorizations = 0.0, refinements = 0.0;  ///< per timed step (dual-grid walls)
-  /// The couplings' assembly, factorising (analysis and numeric) and solves, ms per timed step.
-  double ms_assembly = 0.0, ms_factorizing = 0.0, ms_solves = 0.0;
+  /// The dual-grid walls' work per timed step (perf::per_step(): parts in milliseconds).
+  perf::SolveCount coupling;
   std::string fault;
 
   [[nodiscard]] double rate() const {  // particle-steps per second
@@ -98,12 +97,7 @@ class Timed {
     if (rounds_.empty()) return t_;
     t_.ms_per_step = median_of(rounds_);
     t_.phases = perf::ms_per_step(solver_->phase_times(), before_, steps_);
-    const perf::SolveCount solves = perf::solve_count(*solver_);
-    t_.factorizations = (solves.factorizations - solves0_.factorizations) / steps_;
-    t_.refinements = (solves.refinements - solves0_.refinements) / steps_;
-    t_.ms_assembly = 1e3 * (solves.assembly - solves0_.assembly) / steps_;
-    t_.ms_factorizing = 1e3 * (solves.factorizing - solves0_.factorizing) / steps_;
-    t_.ms_solves = 1e3 * (solves.solves - solves0_.solves) / steps_;
+    t_.coupling = perf::per_step(perf::solve_count(*solver_), solves0_, steps_);
     return t_;
   }
 
@@ -194,24 +188,25 @@ class Yardstick {
 };
 
 json to_json(const Timing& t) {
-  json j = {
-      {"particles", t.particles},
-      {"ms_per_step", t.ms_per_step},
-      {"particle_steps_per_second", t.rate()},
-      {"bytes_per_particle", t.bytes_per_particle},
-      {"ms_phases",
-       {{"locate", t.phases.locate},
-        {"particles_to_grid", t.phases.particles_to_grid},
-        {"grid_update", t.phases.grid_update},
-        {"walls", t.phases.walls},
-        {"coupling", t.phases.coupling},
-        {"grid_to_particles", t.phases.grid_to_particles},
-        {"stress", t.phases.stress},
-        {"advect", t.phases.advect}}},
-      {"factorizations_per_step", t.factorizations},
-      {"refinement_passes_per_step", t.refinements},
-      {"ms_coupling_parts",
-       {{"assembly", t.ms_assembly}, {"factorizing", t.ms_factorizing}, {"solves", t.ms_solves}}}};
+  json j = {{"particles", t.particles},
+            {"ms_per_step", t.ms_per_step},
+            {"particle_steps_per_second", t.rate()},
+            {"bytes_per_particle", t.bytes_per_particle},
+            {"ms_phases",
+             {{"locate", t.phases.locate},
+              {"particles_to_grid", t.phases.particles_to_grid},
+              {"grid_update", t.phases.grid_update},
+              {"walls", t.phases.walls},
+              {"coupling", t.phases.coupling},
+              {"grid_to_particles", t.phases.grid_to_particles},
+              {"stress", t.phases.stress},
+              {"advect", t.phases.advect}}},
+            {"factorizations_per_step", t.coupling.factorizations},
+            {"refinement_passes_per_step", t.coupling.refinements},
+            {"ms_coupling_parts",
+             {{"assembly", t.coupling.assembly},
+              {"factorizing", t.coupling.factorizing},
+              {"solves", t.coupling.solves}}}};
   if (!t.fault.empty()) j["fault"] = t.fault;
   return j;
 }
@@ -357,8 +352,8 @@ int perf_command(const PerfArgs& args) {
       const double ratio = t.ms_per_step / floor_times[0].ms_per_step;
       entry["ratio_to_standard"] = ratio;
       note = fixed(ratio) + " x standard (coupling " + fixed(t.phases.coupling) + " ms; assembly " +
-             fixed(t.ms_assembly) + ", factorizing " + fixed(t.ms_factorizing) + ", solves " +
-             fixed(t.ms_solves) + ")";
+             fixed(t.coupling.assembly) + ", factorizing " + fixed(t.coupling.factorizing) +
+             ", solves " + fixed(t.coupling.solves) + ")";
     }
     print_row(std::string("floor, ") + methods[m], t, note);
     floor[keys[m]] = entry;
