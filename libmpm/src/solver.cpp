@@ -1253,6 +1253,7 @@ void Solver<D>::save_state(Checkpoint& c) const {
     c.integers["solver.enhanced_state_" + std::to_string(i)].assign(s.begin(), s.end());
     c.integers[key + "factored"] = {e.schur_factored ? 1 : 0, e.kkt_factored ? 1 : 0};
     c.integers[key + "kkt_signature"].assign(e.kkt_signature.begin(), e.kkt_signature.end());
+    c.integers[key + "kkt_alpha_cols"].assign(e.kkt_alpha_cols.begin(), e.kkt_alpha_cols.end());
     if (e.schur_factored) save_sparse(c, key + "schur", e.schur_base);
     if (e.kkt_factored) save_sparse(c, key + "kkt", e.kkt_base);
     // Mortar / one-way: the Schur complement the factorisation in hand is of.
@@ -1296,7 +1297,8 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     const auto& factored = c.integer(key + "factored", 2);
     const auto& signature = c.integer(key + "kkt_signature");
     e.kkt_signature.assign(signature.begin(), signature.end());
-    e.kkt_blocks = 0;  // not saved: the first step forms its matrix and compares patterns
+    const auto& alpha_cols = c.integer(key + "kkt_alpha_cols");
+    e.kkt_alpha_cols.assign(alpha_cols.begin(), alpha_cols.end());
     auto refactorise = [&](const std::string& name, Eigen::SparseMatrix<double>& base,
                            SparseLdlt& solver, std::size_t& pattern, bool& ok) {
       base = restore_sparse(c, name);

@@ -476,23 +476,29 @@ bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& pas
 }
 
 /// Solves m x = b with `solver`, which holds a factorisation of m itself or, when `refine`, of
-/// an earlier matrix with the same pattern (the previous step's: the masses change a little
-/// from step to step), refined then by refine(), with `apply(y, out)` setting out = m y;
+/// an earlier matrix of the same size (the previous step's: the masses change a little from
+/// step to step), refined then by refine(), with `apply(y, out)` setting out = m y;
 /// unconverged (the matrices are too far apart), m is factorised (`form()` returns it: a
-/// caller that applies m without forming it forms it only then) and `refine` cleared. Returns
+/// caller that applies m without forming it forms it only then), its pattern analysed first
+/// unless it is `pattern` (the hash of the analysed one's), and `refine` cleared. Returns
 /// false if m cannot be factorised. `base` keeps the matrix the solver's factorisation is of
 /// (a checkpoint saves it, so a resumed run refines against the same one). `passes` and
 /// `factorizations` count the work done (reported by the benchmarks). Allocates only to
 /// factorise (`w` is the caller's scratch).
 template <class Rhs, class Apply, class Form>
 bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
-                   Eigen::SparseMatrix<double>& base, bool& refine, const Rhs& b, Rhs& x,
-                   std::size_t& passes, std::size_t& factorizations, SolveWork<Rhs>& w) {
+                   Eigen::SparseMatrix<double>& base, std::size_t& pattern, bool& refine,
+                   const Rhs& b, Rhs& x, std::size_t& passes, std::size_t& factorizations,
+                   SolveWork<Rhs>& w) {
   ldlt_solve(solver, b, x, w.work);
   if (!refine) return true;
   const auto factor = [&](const Rhs& r, Rhs& out) { ldlt_solve(solver, r, out, w.work); };
   if (mpm::refine(b, x, apply, factor, passes, w.residual, w.update)) return true;
   const Eigen::SparseMatrix<double>& m = form();
+  if (const std::size_t hash = pattern_hash(m); hash != pattern) {
+    solver.analyzePattern(m);
+    pattern = hash;
+  }
   solver.factorize(m);
   base = m;
   ++factorizations;
@@ -505,12 +511,13 @@ bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
 /// refined_solve() of a matrix in hand.
 template <class Rhs>
 bool refined_solve(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
-                   Eigen::SparseMatrix<double>& base, bool& refine, const Rhs& b, Rhs& x,
-                   std::size_t& passes, std::size_t& factorizations, SolveWork<Rhs>& w) {
+                   Eigen::SparseMatrix<double>& base, std::size_t& pattern, bool& refine,
+                   const Rhs& b, Rhs& x, std::size_t& passes, std::size_t& factorizations,
+                   SolveWork<Rhs>& w) {
   return refined_solve(
       solver, [&](const Rhs& y, Rhs& out) { out.noalias() = m * y; },
-      [&]() -> const Eigen::SparseMatrix<double>& { return m; }, base, refine, b, x, passes,
-      factorizations, w);
+      [&]() -> const Eigen::SparseMatrix<double>& { return m; }, base, pattern, refine, b, x,
+      passes, factorizations, w);
 }
 
 /// Factorises m into `solver` unless `solver` holds a factorisation of an earlier matrix with the

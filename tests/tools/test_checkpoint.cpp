@@ -22,6 +22,7 @@
 #include "mpm/run.hpp"
 #include "mpm/scene.hpp"
 #include "support/run_mpm.hpp"
+#include "support/shapes.hpp"
 
 namespace fs = std::filesystem;
 using nlohmann::json;
@@ -52,6 +53,25 @@ json scene(const std::string& wall_method) {
     s["bodies"] = json::parse(R"([{ "name": "heap", "material": "sand",
         "shape": { "type": "box", "min": [0.4, 0.0], "max": [0.8, 0.4] } }])");
     s["walls"] = json::parse(R"([{ "face": "ymin", "condition": "friction", "mu": 0.4 }])");
+  } else if (wall_method == "enhanced_3d") {
+    // A block resting on a floor 0.3 h off the grid lines (the floor benchmark's, smaller).
+    const double h = 0.1, base = 0.03;
+    s["dimension"] = 3;
+    s["grid"] = {{"min", {-h, -h, 0.0}}, {"max", {1.0 + h, 1.0 + h, 0.6}}, {"spacing", h}};
+    s["gravity"] = {0.0, 0.0, -9.81};
+    s["bodies"] = {{{"name", "block"},
+                    {"material", "rubber"},
+                    {"shape", {{"type", "box"},
+                               {"min", {0.3, 0.3, base}},
+                               {"max", {0.7, 0.7, base + 0.2}}}}}};
+    s["walls"] = {{{"name", "floor"},
+                   {"method", "enhanced"},
+                   {"condition", "slip"},
+                   {"separable", true},
+                   {"surface",
+                    {{"type", "mesh"},
+                     {"file", mpm::test::floor_plane_file("mpm_checkpoint", base, -h, 1.0 + h)},
+                     {"remesh", true}}}}};
   } else {
     // Wall from (0.1, 0.8) down to (1.1, 0.2267): 30 degrees; block resting on it.
     s["bodies"] = json::parse(R"([{ "name": "block", "material": "rubber",
@@ -140,7 +160,12 @@ TEST_P(Checkpoint, StoppedAndResumedRunIsBitIdentical) {
 // factorisations the uninterrupted run has in hand (maybe an earlier step's, which it refines
 // against): the checkpoint keeps those matrices and the restore factorises them again. Without
 // them the resumed run factorised afresh and parted from the uninterrupted one in the 10th digit.
-INSTANTIATE_TEST_SUITE_P(Walls, Checkpoint, ::testing::Values("mortar", "granular", "enhanced"));
+// On a 3D floor the contact matrix's pattern changes from step to step while its unknowns do
+// not, and Enhanced refines across such changes: the checkpoint keeps the enhancement nodes of
+// the factorisation in hand too (without them the resumed run formed and factorised the matrix
+// anew and parted from the uninterrupted one, halted after steps 116-128 of 155).
+INSTANTIATE_TEST_SUITE_P(Walls, Checkpoint,
+                         ::testing::Values("mortar", "granular", "enhanced", "enhanced_3d"));
 
 /// The inode of `file` (0 if absent): a checkpoint is renamed into place, so a new one is a new
 /// inode.

@@ -161,13 +161,16 @@ struct EnhancedState {
   std::size_t schur_pattern = 0;      ///< sparsity hash of the factorised K
   bool schur_factored = false;        ///< schur_solver holds a valid factorisation (maybe older)
   bool schur_refine = false;          ///< this step's K is solved by refinement
+  bool schur_ready = false;           ///< schur_solver prepared for this step's K (schur_refine)
+  /// K, W and S_A (schur, coupled_r, grid_rr) are this step's: formed only to factorise a matrix
+  /// (enhanced_solve()); refinement applies them through cross, grid_r and alpha_r.
+  bool products_formed = false;
   Eigen::SparseMatrix<double> kkt_matrix;  ///< this step's contact matrix (full storage)
-  /// The contact matrix is formed only to be factorised: refinement applies it from its blocks
-  /// (K, W, S_A and the held directions). The blocks' patterns hashed, this step's and those of
-  /// the factorised matrix (0: not known, after a restore), decide whether the factorisation in
-  /// hand has this step's pattern without forming the matrix.
-  std::size_t blocks_pattern = 0;
-  std::size_t kkt_blocks = 0;
+  /// The contact matrix is formed only to be factorised: refinement applies it from the factors
+  /// of its blocks (C, R^A, R^alpha, the masses and the held directions), against the
+  /// factorisation in hand while its unknowns are this step's: the held rows (kkt_signature)
+  /// and these enhancement nodes (alpha_cols when it was factorised; saved in a checkpoint).
+  std::vector<int> kkt_alpha_cols;
   bool kkt_formed = false;  ///< kkt_matrix is this step's, for kkt_signature
   double kkt_shift = 0.0;   ///< the held rows' diagonal shift (relative 1e-10 of S_A's largest)
   /// The matrices the two factorisations in hand are of (maybe an earlier step's): saved in a
@@ -197,7 +200,7 @@ struct EnhancedState {
   Eigen::SparseMatrix<double> cross_candidates, minv_cross;
   ProductWork product_work[3];
   Block pa, ps, vs, vna, impulse, load, pa_load, ps_load, minv_pa, rhs_alpha, rt_minv_pa, gap;
-  Block apply_v, apply_y, apply_j, apply_t;  ///< the contact matrix applied by blocks
+  Block apply_v, apply_y, apply_j, apply_t, apply_u, apply_rj;  ///< the contact matrix by blocks
   std::vector<Contact> contact, on_contact;
   std::vector<double> friction;
   std::vector<std::pair<int, Vec<D>>> rows;  ///< held directions: (multiplier, direction)
