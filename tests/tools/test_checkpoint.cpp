@@ -59,11 +59,10 @@ json scene(const std::string& wall_method) {
     s["dimension"] = 3;
     s["grid"] = {{"min", {-h, -h, 0.0}}, {"max", {1.0 + h, 1.0 + h, 0.6}}, {"spacing", h}};
     s["gravity"] = {0.0, 0.0, -9.81};
-    s["bodies"] = {{{"name", "block"},
-                    {"material", "rubber"},
-                    {"shape", {{"type", "box"},
-                               {"min", {0.3, 0.3, base}},
-                               {"max", {0.7, 0.7, base + 0.2}}}}}};
+    s["bodies"] = {
+        {{"name", "block"},
+         {"material", "rubber"},
+         {"shape", {{"type", "box"}, {"min", {0.3, 0.3, base}}, {"max", {0.7, 0.7, base + 0.2}}}}}};
     s["walls"] = {{{"name", "floor"},
                    {"method", "enhanced"},
                    {"condition", "slip"},
