@@ -909,6 +909,12 @@ void Solver<D>::layer_couple(bool remapped) {
       // reuses it (the masses do not change).
       const PartTimer<D> timer(w, w.assembly_seconds);
       for (const int node : w.layer_rows) w.layer_row_of[node] = -1;
+      // The step before's rows and entries are kept aside (swapped, not copied) to be compared
+      // with this step's below.
+      std::swap(w.grid_rows, w.kept_grid_rows);
+      std::swap(w.layer_rows, w.kept_layer_rows);
+      std::swap(w.grid_entries, w.kept_grid_entries);
+      std::swap(w.layer_entries, w.kept_layer_entries);
       w.active_multipliers.clear();
       w.grid_rows.clear();
       w.layer_rows.clear();
@@ -962,10 +968,25 @@ void Solver<D>::layer_couple(bool remapped) {
       }
       const auto k = static_cast<Eigen::Index>(w.active_multipliers.size());
       if (k == 0) continue;
-      assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k, ga,
-                        w.assembly_work);
-      assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k, ba,
-                        w.assembly_work);
+      // The same rows and entries as the step before's (the same nodes above the coupling
+      // threshold: a resting body), which R^A and R^alpha hold already (the step before's were
+      // assigned to them unless it had no multiplier, and then it had no entry either): only
+      // the masses below change.
+      auto same = [](const std::vector<Eigen::Triplet<double>>& a,
+                     const std::vector<Eigen::Triplet<double>>& b) {
+        return std::ranges::equal(a, b, [](const auto& x, const auto& y) {
+          return x.row() == y.row() && x.col() == y.col() && x.value() == y.value();
+        });
+      };
+      if (!(w.grid_rows == w.kept_grid_rows && w.layer_rows == w.kept_layer_rows &&
+            same(ga, w.kept_grid_entries) && same(ba, w.kept_layer_entries))) {
+        assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k, ga,
+                          w.assembly_work);
+        assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k, ba,
+                          w.assembly_work);
+        w.coupling_structure =
+            pattern_hash(w.grid_active) * 1000003U + pattern_hash(w.boundary_active);
+      }
       // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar) + shift I; every kept
       // row is above the coupling threshold, so its mass is positive. More multipliers than the
       // active nodes can satisfy makes S singular (the inf-sup problem of DESIGN.md): a relative
@@ -999,8 +1020,7 @@ void Solver<D>::layer_couple(bool remapped) {
       // weigh 1/m in S), refinement fails time after time, each failure costing passes before
       // the factorisation it ends in: after a failure the next `refine_backoff` steps (1, 2, 4
       // ... 64, reset by a success) factorise without trying.
-      const std::size_t structure =
-          pattern_hash(w.grid_active) * 1000003U + pattern_hash(w.boundary_active);
+      const std::size_t structure = w.coupling_structure;
       const bool waiting = w.refine_wait > 0;
       if (waiting) --w.refine_wait;
       w.schur_refine = w.schur_factored && structure == w.factored_structure && !waiting;

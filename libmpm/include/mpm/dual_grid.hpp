@@ -299,6 +299,11 @@ struct DualWall {
   /// allocates nothing (issue 9): the active coupling's entries, S's diagonal, and the solve's
   /// blocks (one row per kept row or active multiplier, one column per component).
   std::vector<Eigen::Triplet<double>> grid_entries, layer_entries;
+  /// The step before's rows and entries (layer_couple() keeps R^A and R^alpha when this step's
+  /// are the same), and the hash of R^A's and R^alpha's patterns.
+  std::vector<int> kept_grid_rows, kept_layer_rows;
+  std::vector<Eigen::Triplet<double>> kept_grid_entries, kept_layer_entries;
+  std::size_t coupling_structure = 0;
   std::vector<int> assembly_work;
   Eigen::VectorXd schur_diagonal;
   NodeBlock<D> grid_block, layer_block, gap, lambda, residual, update;
