@@ -239,6 +239,9 @@ std::vector<CouplingWork> Solver<D>::coupling_work() const {
     }
     c.factorizations = w.factorizations + w.enh.factorizations;
     c.refinement_passes = w.refinements + w.enh.refinements;
+    c.active_set_passes = w.enh.active_set_passes;
+    c.unsettled_steps = w.enh.unsettled_steps;
+    c.kept_released = w.enh.kept_released;
     c.assembly_seconds = w.assembly_seconds;
     c.solve_seconds = w.solve_seconds;
     for (const SparseLdlt* s : solvers_of(w)) {

@@ -648,10 +648,18 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
       state = on_of;
     }
     // Active set: release multipliers that pull (separable), add those whose gap closes, and
-    // switch between stick and Coulomb slip; a few passes settle it.
+    // switch between stick and Coulomb slip; a few passes settle it. A multiplier released twice
+    // in a step stays released for the rest of it: on rough contact (the debris slope as an
+    // Enhanced wall) one or two multipliers could alternate between pulling when held and
+    // closing their gap when released, every pass a new factorisation, until the 30 passes ran
+    // out (a quarter of the steps), and the step kept whichever state the last pass left.
+    std::vector<unsigned char>& releases = e.releases;
+    releases.assign(static_cast<std::size_t>(k), 0);
     e.active_set_iterations = 0;
+    bool settled = false;
     for (int iteration = 0; iteration < 30 && ok; ++iteration) {
       ++e.active_set_iterations;
+      ++e.active_set_passes;
       ok = solve();
       if (!ok) break;
       const Block& g = gaps();
@@ -663,13 +671,18 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         const double jn = total.dot(n);
         if (s == Contact::off) {
           if (contact.separable && g.row(i).dot(n.transpose()) < 0.0) {
-            s = on_of[static_cast<std::size_t>(i)];
-            changed = true;
+            if (releases[static_cast<std::size_t>(i)] < 2) {
+              s = on_of[static_cast<std::size_t>(i)];
+              changed = true;
+            } else {
+              ++e.kept_released;
+            }
           }
           continue;
         }
         if (contact.separable && jn < 0.0) {
           s = Contact::off;
+          ++releases[static_cast<std::size_t>(i)];
           load.row(i).setZero();
           changed = true;
           continue;
@@ -702,8 +715,12 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
           }
         }
       }
-      if (!changed) break;
+      if (!changed) {
+        settled = true;
+        break;
+      }
     }
+    if (ok && !settled) ++e.unsettled_steps;
   } else {
     ok = solve();
   }

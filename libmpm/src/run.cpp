@@ -723,6 +723,11 @@ int run_scene(const Scene& scene, const RunOptions& options) {
                                      {"analysis", c.analysis_seconds},
                                      {"factorization", c.factorization_seconds},
                                      {"solves", c.solve_seconds}}}};
+    if (c.method == "enhanced") {
+      summary["coupling"][c.wall]["active_set"] = {{"passes", c.active_set_passes},
+                                                   {"unsettled_steps", c.unsettled_steps},
+                                                   {"kept_released", c.kept_released}};
+    }
   }
   // The standard grid's memory: its node arrays are backed only where particles have been.
   const mpm::GridMemory g = sim->grid_memory();

@@ -327,6 +327,23 @@ TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
   coupling = read_summary().at("coupling").at("floor");
   EXPECT_EQ(coupling.at("surface_nodes").get<int>(), 11);
   EXPECT_EQ(coupling.at("multipliers").get<int>(), 6);
+  EXPECT_FALSE(coupling.contains("active_set"));  // Enhanced only
+  // Enhanced: its contact active set too. The resting block (friction, not separable) holds
+  // every multiplier in contact and settles each step in a few passes, releasing none.
+  scene["walls"][0].erase("multiplier_radius");
+  scene["walls"][0]["method"] = "enhanced";
+  write_scene(scene);
+  r = run_scene({"-j", "1", "--overwrite"});
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const json summary = read_summary();
+  coupling = summary.at("coupling").at("floor");
+  EXPECT_EQ(coupling.at("method"), "enhanced");
+  const json active_set = coupling.at("active_set");
+  const int steps = summary.at("steps").get<int>();
+  EXPECT_GE(active_set.at("passes").get<int>(), steps);
+  EXPECT_LE(active_set.at("passes").get<int>(), 30 * steps);
+  EXPECT_EQ(active_set.at("unsettled_steps").get<int>(), 0);
+  EXPECT_EQ(active_set.at("kept_released").get<int>(), 0);
 }
 
 TEST_F(CommandLine, ResolutionRefinesTheSceneAndAResumedRunKeepsIt) {

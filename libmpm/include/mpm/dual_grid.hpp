@@ -151,17 +151,21 @@ struct EnhancedState {
   std::size_t dropped_covered = 0;    ///< Gamma nodes the standard grid alone covers this step
   double min_mass_ratio = 1.0;        ///< smallest K_SS / m^alpha_S kept this step
   int active_set_iterations = 0;      ///< of the last constrained solve
-  bool kkt_ready = false;             ///< kkt_solver holds this step's matrix for kkt_signature
-  std::vector<int> kkt_signature;     ///< 4 * multiplier + contact state, per held row
-  std::size_t kkt_pattern = 0;        ///< sparsity hash of the last analysed matrix
-  std::size_t factorizations = 0;     ///< contact-system factorisations so far (for benchmarks)
-  std::size_t refinements = 0;        ///< refinement passes against an earlier factorisation
-  bool kkt_factored = false;          ///< kkt_solver holds a valid factorisation (maybe older)
-  bool kkt_refine = false;            ///< this step's matrix is solved by refinement
-  std::size_t schur_pattern = 0;      ///< sparsity hash of the factorised K
-  bool schur_factored = false;        ///< schur_solver holds a valid factorisation (maybe older)
-  bool schur_refine = false;          ///< this step's K is solved by refinement
-  bool schur_ready = false;           ///< schur_solver prepared for this step's K (schur_refine)
+  /// Since the run (or its resume) began: the active-set passes, the steps whose active set had
+  /// not settled after the 30 passes allowed (the last pass's states then stand), and the times
+  /// a multiplier released twice in a step was kept released though its gap closed.
+  std::size_t active_set_passes = 0, unsettled_steps = 0, kept_released = 0;
+  bool kkt_ready = false;          ///< kkt_solver holds this step's matrix for kkt_signature
+  std::vector<int> kkt_signature;  ///< 4 * multiplier + contact state, per held row
+  std::size_t kkt_pattern = 0;     ///< sparsity hash of the last analysed matrix
+  std::size_t factorizations = 0;  ///< contact-system factorisations so far (for benchmarks)
+  std::size_t refinements = 0;     ///< refinement passes against an earlier factorisation
+  bool kkt_factored = false;       ///< kkt_solver holds a valid factorisation (maybe older)
+  bool kkt_refine = false;         ///< this step's matrix is solved by refinement
+  std::size_t schur_pattern = 0;   ///< sparsity hash of the factorised K
+  bool schur_factored = false;     ///< schur_solver holds a valid factorisation (maybe older)
+  bool schur_refine = false;       ///< this step's K is solved by refinement
+  bool schur_ready = false;        ///< schur_solver prepared for this step's K (schur_refine)
   /// K, W and S_A (schur, coupled_r, grid_rr) are this step's: formed only to factorise a matrix
   /// (enhanced_solve()); refinement applies them through cross, grid_r and alpha_r.
   bool products_formed = false;
@@ -202,6 +206,7 @@ struct EnhancedState {
   Block pa, ps, vs, vna, impulse, load, pa_load, ps_load, minv_pa, rhs_alpha, rt_minv_pa, gap;
   Block apply_v, apply_y, apply_j, apply_t, apply_u, apply_rj;  ///< the contact matrix by blocks
   std::vector<Contact> contact, on_contact;
+  std::vector<unsigned char> releases;  ///< per multiplier: times released in this step's loop
   std::vector<double> friction;
   std::vector<std::pair<int, Vec<D>>> rows;  ///< held directions: (multiplier, direction)
   std::vector<int> signature, row_first;

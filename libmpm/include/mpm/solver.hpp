@@ -68,6 +68,10 @@ struct CouplingWork {
   std::size_t corner_nodes = 0;
   std::size_t factorizations = 0;
   std::size_t refinement_passes = 0;
+  /// Enhanced: the contact active set's passes, the steps it had not settled after 30 (their
+  /// last pass's states stand), and the re-additions refused to a multiplier released twice in
+  /// a step (its gap closing again: the loop would alternate; docs/enhanced.md).
+  std::size_t active_set_passes = 0, unsettled_steps = 0, kept_released = 0;
   /// Where the coupling's time went (wall clock, seconds): forming the active coupling and
   /// its matrices, ordering them for factorisation (the fill-reducing analysis, when the
   /// pattern is new), factorising them, and solving (refinement included). The coupling runs
