@@ -559,7 +559,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
                                   e.kkt_factored, same_rows, e.kkt_refine, e.factorizations)) {
             return false;
           }
-          if (!e.kkt_refine) e.kkt_alpha_cols = e.alpha_cols;
+          // (Reused for the same pattern or factorised anew: for these unknowns from now on.)
+          e.kkt_alpha_cols = e.alpha_cols;
         }
         e.kkt_ready = true;
         e.kkt_signature = signature;

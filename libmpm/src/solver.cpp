@@ -1297,8 +1297,12 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     const auto& factored = c.integer(key + "factored", 2);
     const auto& signature = c.integer(key + "kkt_signature");
     e.kkt_signature.assign(signature.begin(), signature.end());
-    const auto& alpha_cols = c.integer(key + "kkt_alpha_cols");
-    e.kkt_alpha_cols.assign(alpha_cols.begin(), alpha_cols.end());
+    // (Absent from a checkpoint written before it was kept: the first contact step then forms
+    // its matrix and factorises it unless its pattern is the saved one's.)
+    e.kkt_alpha_cols.clear();
+    if (const auto it = c.integers.find(key + "kkt_alpha_cols"); it != c.integers.end()) {
+      e.kkt_alpha_cols.assign(it->second.begin(), it->second.end());
+    }
     auto refactorise = [&](const std::string& name, Eigen::SparseMatrix<double>& base,
                            SparseLdlt& solver, std::size_t& pattern, bool& ok) {
       base = restore_sparse(c, name);
