@@ -1005,15 +1005,8 @@ void Solver<D>::layer_couple(bool remapped) {
       }
       Eigen::VectorXd& diagonal = w.schur_diagonal;
       diagonal.setZero(k);
-      for (Eigen::Index c = 0; c < k; ++c) {
-        for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_active, c); it; ++it) {
-          diagonal[c] += it.value() * it.value() * w.inv_grid_mass[it.row()];
-        }
-        if (!mortar) continue;
-        for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_active, c); it; ++it) {
-          diagonal[c] += it.value() * it.value() * w.inv_layer_mass[it.row()];
-        }
-      }
+      add_weighted_column_squares(w.grid_active, w.inv_grid_mass, diagonal);
+      if (mortar) add_weighted_column_squares(w.boundary_active, w.inv_layer_mass, diagonal);
       w.schur_shift = 1e-10 * diagonal.maxCoeff();
       // While the active set keeps the coupling's pattern, the factorisation in hand (an earlier
       // step's S) solves this step's by refinement, the residuals taken with the factors

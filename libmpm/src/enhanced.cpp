@@ -307,16 +307,10 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   e.kkt_formed = false;
   // S_A plus a relative 1e-10 shift on the held rows: redundant multipliers (more than the
   // active nodes can satisfy, the inf-sup problem of DESIGN.md) keep the system quasi-definite.
-  // S_A's diagonal is sum_r (R^A_ri)^2 / m^A_r.
-  double largest = 0.0;
-  for (Eigen::Index i = 0; i < e.grid_r.outerSize(); ++i) {
-    double diagonal = 0.0;
-    for (Sparse::InnerIterator it(e.grid_r, i); it; ++it) {
-      diagonal += it.value() * it.value() * e.inv_mass[it.row()];
-    }
-    largest = std::max(largest, diagonal);
-  }
-  e.kkt_shift = 1e-10 * largest;
+  // (S_A's diagonal from R^A and the masses: S_A itself is formed only to factorise.)
+  e.grid_rr_diagonal.setZero(k);
+  add_weighted_column_squares(e.grid_r, e.inv_mass, e.grid_rr_diagonal);
+  e.kkt_shift = k > 0 ? 1e-10 * e.grid_rr_diagonal.maxCoeff() : 0.0;
 }
 
 // One velocity solve: from the standard-grid velocities `va` (p^A = m^A va on the near rows,
@@ -656,10 +650,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
     // out (a quarter of the steps), and the step kept whichever state the last pass left.
     std::vector<unsigned char>& releases = e.releases;
     releases.assign(static_cast<std::size_t>(k), 0);
-    e.active_set_iterations = 0;
     bool settled = false;
     for (int iteration = 0; iteration < 30 && ok; ++iteration) {
-      ++e.active_set_iterations;
       ++e.active_set_passes;
       ok = solve();
       if (!ok) break;

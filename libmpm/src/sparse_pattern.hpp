@@ -21,6 +21,18 @@
 
 namespace mpm {
 
+/// diagonal[c] += sum_i r_ic^2 weight_i for every column c of r: the diagonal of r^T diag(weight)
+/// r without forming it (a coupling's Schur complement, whose largest diagonal entry sets its
+/// shift).
+inline void add_weighted_column_squares(const Eigen::SparseMatrix<double>& r,
+                                        const Eigen::VectorXd& weight, Eigen::VectorXd& diagonal) {
+  for (Eigen::Index c = 0; c < r.outerSize(); ++c) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(r, c); it; ++it) {
+      diagonal[c] += it.value() * it.value() * weight[it.row()];
+    }
+  }
+}
+
 /// Hash of the non-zero pattern of `m` (not its values).
 inline std::size_t pattern_hash(const Eigen::SparseMatrix<double>& m) {
   std::size_t hash = static_cast<std::size_t>(m.nonZeros()) * 1000003U + m.rows();

@@ -150,7 +150,6 @@ struct EnhancedState {
   std::size_t dropped_dependent = 0;  ///< alpha nodes dropped this step (near-dependent bases)
   std::size_t dropped_covered = 0;    ///< Gamma nodes the standard grid alone covers this step
   double min_mass_ratio = 1.0;        ///< smallest K_SS / m^alpha_S kept this step
-  int active_set_iterations = 0;      ///< of the last constrained solve
   /// Since the run (or its resume) began: the active-set passes, the steps whose active set had
   /// not settled after the 30 passes allowed (the last pass's states then stand), and the times
   /// a multiplier released twice in a step was kept released though its gap closed.
@@ -202,6 +201,7 @@ struct EnhancedState {
   /// forms at the same time as another (R^A and R^alpha; K, W and R^A^T M_A^-1 R^A).
   std::vector<int> assembly_work[2];
   Eigen::SparseMatrix<double> cross_candidates, minv_cross;
+  Eigen::VectorXd grid_rr_diagonal;  ///< S_A's diagonal (its largest entry sets kkt_shift)
   ProductWork product_work[3];
   Block pa, ps, vs, vna, impulse, load, pa_load, ps_load, minv_pa, rhs_alpha, rt_minv_pa, gap;
   Block apply_v, apply_y, apply_j, apply_t, apply_u, apply_rj;  ///< the contact matrix by blocks
