@@ -48,6 +48,10 @@ BENCHMARK(BM_StandardStep3D)
     ->UseRealTime();
 void BM_StandardStepUSL3D(benchmark::State& state) { standard_step(state, "usl"); }
 BENCHMARK(BM_StandardStepUSL3D)->Arg(32)->Unit(benchmark::kMillisecond)->UseRealTime();
+// MLS-MPM (Hu et al. 2018): USL's order, with the force and the velocity gradient from the APIC
+// moment (the yardstick's algorithm).
+void BM_StandardStepMLS3D(benchmark::State& state) { standard_step(state, "mls"); }
+BENCHMARK(BM_StandardStepMLS3D)->Arg(32)->Unit(benchmark::kMillisecond)->UseRealTime();
 // The same block in the sparse grid layout (a box the block fills is dense by default): what
 // the blocked, page-backed storage costs the transfers.
 void BM_StandardStepSparse3D(benchmark::State& state) { standard_step(state, "musl", "sparse"); }

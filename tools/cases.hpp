@@ -9,6 +9,7 @@
 #include <initializer_list>
 #include <map>
 #include <memory>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -64,6 +65,14 @@ void dump_scenes(const std::filesystem::path& dir, const std::string& prefix);
 /// Gives every Blending wall (mortar, one-way) of the cases run "multiplier_radius": radius
 /// (0: the scenes as the cases write them). Set by verify_command.
 void merge_multipliers(double radius);
+/// Runs every case under this update scheme ("musl", "usl" or "mls"; empty: the scenes' own).
+/// Set by verify_command.
+void use_update_scheme(const std::string& update);
+/// Thrown by run_scene_doc for a case the update scheme cannot run (MLS-MPM on a kernel other
+/// than the quadratic B-spline): verify_command reports the case as not run.
+struct NotApplicable : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
 
 nlohmann::json vec(std::initializer_list<double> v);
 /// A wall condition: "friction" with mu > 0, else "slip".

@@ -33,6 +33,7 @@ struct VerifyArgs {
   std::filesystem::path data_dir;   ///< data/verification
   std::filesystem::path scene_dir;  ///< non-empty: write every scene run there as JSON
   double multiplier_radius = 0.0;   ///< > 0: Blending walls merge Phi's multipliers within it
+  std::string update;               ///< non-empty: every case under this update scheme
 };
 
 /// `mpm verify`: 0 when every selected check passes, 1 when one fails, 2 bad input.

@@ -107,6 +107,11 @@ int main(int argc, char** argv) {
                    "Blending walls merge Phi's multipliers within this many cell spacings "
                    "(the scene key multiplier_radius; default 0: one per Phi node)")
       ->check(CLI::Range(0.0, 8.0));
+  verify
+      ->add_option("--update", verify_args.update,
+                   "Update scheme of every case: musl, usl or mls (default: the cases' own, "
+                   "musl); mls skips the cases on another kernel than bspline2")
+      ->check(CLI::IsMember({"musl", "usl", "mls"}));
   verify->add_option("--data", verify_args.data_dir, "Folder of the case files")
       ->check(CLI::ExistingDirectory);
   add_threads(verify);

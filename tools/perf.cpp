@@ -278,10 +278,12 @@ int perf_command(const PerfArgs& args) {
       cells, rounds, steps, threads);
   std::printf("  %-34s %9s %10s %9s\n", "step", "particles", "ms/step", "M p-s/s");
 
-  // The standard step, MUSL (the default) and USL (one transfer each way, as the yardstick), on
-  // all threads and on one, in interleaved rounds.
+  // The standard step, MUSL (the default), USL (one transfer each way, as the yardstick) and
+  // MLS-MPM (USL's order with the yardstick's force and gradient), on all threads and on one, in
+  // interleaved rounds.
+  const char* const updates[] = {"musl", "usl", "mls"};
   std::vector<std::unique_ptr<Timed>> standard;
-  for (const char* update : {"musl", "usl"}) {
+  for (const char* update : updates) {
     const Scene scene = perf::block_scene(cells, update);
     standard.push_back(std::make_unique<Timed>(scene, settle, 0));
     standard.push_back(std::make_unique<Timed>(scene, settle, 1));
@@ -311,8 +313,8 @@ int perf_command(const PerfArgs& args) {
     }
     report["yardstick"] = entry;
   }
-  for (int u = 0; u < 2; ++u) {
-    const std::string update = u == 0 ? "musl" : "usl";
+  for (int u = 0; u < 3; ++u) {
+    const std::string update = updates[u];
     const Timing& all = blocks[static_cast<std::size_t>(2 * u)];
     const Timing& one = blocks[static_cast<std::size_t>(2 * u + 1)];
     note_fault(update, all);

@@ -24,6 +24,7 @@ using nlohmann::json;
 int verify_command(const VerifyArgs& args) {
   std::vector<Check> checks;
   merge_multipliers(args.multiplier_radius);
+  use_update_scheme(args.update);
   if (!args.scene_dir.empty()) {
     std::error_code ec;
     std::filesystem::create_directories(args.scene_dir, ec);
@@ -83,6 +84,10 @@ int verify_command(const VerifyArgs& args) {
         }
         try {
           got = checkers().at(name)(p.at("params"), method, k);
+        } catch (const NotApplicable& e) {
+          std::printf("%-22s %-9s %2d  not run: %s\n", name.c_str(), method.c_str(), k, e.what());
+          std::fflush(stdout);
+          continue;
         } catch (const std::exception& e) {
           std::cerr << "mpm verify: " << file.string() << ": " << e.what() << "\n";
           return 2;

@@ -501,7 +501,7 @@ void Solver<D>::locate_in_layers() {
   layer_stencil_.resize(layer_list_.size());
   layer_gradient_.resize(layer_list_.size());
   layer_terms_.resize(layer_list_.size());
-  const bool remaps = scene_.update != UpdateScheme::usl;
+  const bool remaps = scene_.update == UpdateScheme::musl;
   // Each layer particle's boundary-grid basis, and the terms of its scatters that depend
   // neither on the node nor on what the step changes before them (layer_scatter(): its stress
   // and body force are the step's first; its centroid point is where its basis puts it).
@@ -1216,7 +1216,7 @@ void Solver<D>::layer_gather(double dt) {
   auto& P = particles;
   if (dual_.empty()) return;
   const bool apic = scene_.transfer == Transfer::apic;
-  const bool usl = scene_.update == UpdateScheme::usl;
+  const bool usl = scene_.update != UpdateScheme::musl;  // USL or MLS
   const double alpha = scene_.flip_blend;
   // Each particle reads the nodes and writes only itself: in parallel.
   auto gather_one = [&](std::size_t i) {

@@ -472,6 +472,15 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
   wall.contact = read_contact(r, wall.method != CouplingMethod::sdf);
   const bool blending =
       wall.method == CouplingMethod::mortar || wall.method == CouplingMethod::one_way;
+  if (blending && scene.update != UpdateScheme::musl) {
+    // Their boundary grid's linear basis takes the strain rate and C_p from the remapped,
+    // re-coupled field; from v^{n+1} (USL, MLS) a block sliding on an inclined Blending wall
+    // diverged within 0.1 s at every angle (docs/blending.md, "Update scheme").
+    r.fail_at(r.child("method"),
+              "a Blending wall (" + method +
+                  ") needs \"scheme\": {\"update\": \"musl\"}, the scene has \"" +
+                  (scene.update == UpdateScheme::usl ? "usl" : "mls") + "\"");
+  }
   if (r.has("multiplier_radius")) {
     if (!blending) {
       r.fail_at(r.child("multiplier_radius"),
@@ -696,8 +705,10 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
 
   if (root.has("scheme")) {
     Reader scheme = root.object("scheme");
-    scene.update = scheme.choice("update", {"usl", "musl"}, "musl") == "usl" ? UpdateScheme::usl
-                                                                             : UpdateScheme::musl;
+    const std::string update = scheme.choice("update", {"usl", "musl", "mls"}, "musl");
+    scene.update = update == "usl"   ? UpdateScheme::usl
+                   : update == "mls" ? UpdateScheme::mls
+                                     : UpdateScheme::musl;
     const std::string transfer = scheme.choice("transfer", {"apic", "flip", "pic"}, "apic");
     scene.transfer = transfer == "apic" ? Transfer::apic : Transfer::flip;
     if (transfer == "flip") {
@@ -707,6 +718,12 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
       if (scheme.has("flip_blend")) {
         scheme.fail_at(scheme.child("flip_blend"), "only used with \"transfer\": \"flip\"");
       }
+    }
+    if (scene.update == UpdateScheme::mls &&
+        (scene.transfer != Transfer::apic || scene.shape != ShapeKind::bspline2)) {
+      // The MLS force and gradient take C_p = B_p D^-1, with D constant only for the B-spline.
+      scheme.fail_at(scheme.child("update"),
+                     "\"mls\" needs \"transfer\": \"apic\" and \"shape_function\": \"bspline2\"");
     }
     scene.mass_threshold = scheme.in_range("mass_threshold", 0.0, 0.5, false, 1e-9);
     scene.coupling_mass_threshold =

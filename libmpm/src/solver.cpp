@@ -324,7 +324,7 @@ template <int D>
 template <class Shape>
 void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const double (&v)[D],
                                    const double (&C)[D][D], const double (*body_force)[D],
-                                   const double (*stress)[D][D]) {
+                                   const double (*stress)[D][D], bool mls) {
   static_assert(D == 3);
   constexpr int S = Shape::support;
   const auto& w = st.w;
@@ -335,11 +335,18 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   // then updated as one vector, with the per-node weights repeated per component.
   static_assert(sizeof(Vec<3>) == 3 * sizeof(double), "grid vectors must be packed");
   static constexpr int R = 3 * S;  // static: the lambda below uses it without a capture
+  // The force's weights per axis: grad N = (g_0 w_1 w_2, w_0 g_1 w_2, w_0 w_1 g_2) with g = dw;
+  // MLS-MPM (Hu et al. 2018) replaces grad N by N D^-1 (x_I - x_p), so g = w dx (the stress
+  // comes scaled by D^-1 = 4 / h^2).
+  double g[3][S];
+  for (int a = 0; a < 3; ++a) {
+    for (int k = 0; k < S; ++k) g[a][k] = mls ? w[a][k] * dx[a][k] : dw[a][k];
+  }
   double w2[R], wx2[R], dw2[R];
   for (int c = 0; c < R; ++c) {
     w2[c] = w[2][c / 3];
     wx2[c] = w[2][c / 3] * dx[2][c / 3];
-    dw2[c] = dw[2][c / 3];
+    dw2[c] = g[2][c / 3];
   }
   double mv[3], mc[3][3];
   for (int a = 0; a < 3; ++a) {
@@ -391,7 +398,7 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
         const auto& vs = *stress;
         double r[3], t[3];  // force = r w_k + t dw_k
         for (int a = 0; a < 3; ++a) {
-          r[a] = wij * mb[a] + vs[a][0] * dw[0][i] * w[1][j] + vs[a][1] * w[0][i] * dw[1][j];
+          r[a] = wij * mb[a] + vs[a][0] * g[0][i] * w[1][j] + vs[a][1] * w[0][i] * g[1][j];
           t[a] = wij * vs[a][2];
         }
         add_row(force, row, r, w2, t, dw2);
@@ -425,6 +432,10 @@ template <class Shape>
 void Solver<D>::scatter(bool with_force) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
+  // MLS-MPM: the force -V sigma D^-1 (x_I - x_p) N_I in place of -V sigma grad N_I (D^-1 = 4/h^2
+  // for the quadratic B-spline, the one kernel the scene accepts with it).
+  const bool mls = scene_.update == UpdateScheme::mls;
+  const double inv_d = 4.0 * grid.inv_h * grid.inv_h;
   // f(mass, momentum, force) with the grid's layout fixed at compile time (Grid::access).
   auto in_layout = [&](auto&& f) {
     if (grid.sparse) {
@@ -447,14 +458,15 @@ void Solver<D>::scatter(bool with_force) {
       for (int b = 0; b < D; ++b) C[a][b] = apic ? P.affine[p](a, b) : 0.0;
     }
     if (with_force) {
-      const Mat<D> stress = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p];
+      const Mat<D> stress = -(mls ? inv_d : 1.0) * P.volume0[p] *
+                            P.deformation_gradient[p].determinant() * P.stress[p];
       double vs[D][D], mb[D];
       for (int a = 0; a < D; ++a) {
         mb[a] = m * body_acceleration_[P.body[p]][a];
         for (int b = 0; b < D; ++b) vs[a][b] = stress(a, b);
       }
       if constexpr (D == 3) {
-        scatter_factorised(st, m, v, C, &mb, &vs);
+        scatter_factorised(st, m, v, C, &mb, &vs, mls);
         return;
       }
       in_layout([&](const auto& mass, const auto& momenta, const auto& forces) {
@@ -468,7 +480,7 @@ void Solver<D>::scatter(bool with_force) {
             double va = v[a], fa = N * mb[a];
             for (int b = 0; b < D; ++b) {
               va += C[a][b] * dx[b];
-              fa += vs[a][b] * dN[b];
+              fa += vs[a][b] * (mls ? N * dx[b] : dN[b]);
             }
             momentum[a] += Nm * va;
             force[a] += fa;
@@ -477,7 +489,7 @@ void Solver<D>::scatter(bool with_force) {
       });
     } else {
       if constexpr (D == 3) {
-        scatter_factorised(st, m, v, C, nullptr, nullptr);
+        scatter_factorised(st, m, v, C, nullptr, nullptr, false);
         return;
       }
       in_layout([&](const auto& /*mass*/, const auto& momenta, const auto& /*forces*/) {
@@ -844,7 +856,8 @@ template <class Shape>
 void Solver<D>::gather(double dt, Reach reach) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
-  const bool usl = scene_.update == UpdateScheme::usl;
+  const bool usl = scene_.update != UpdateScheme::musl;  // USL or MLS: the gradient now
+  const bool mls = scene_.update == UpdateScheme::mls;
   const bool displace = !P.displacement.empty();
   constexpr bool bspline = std::is_same_v<Shape, BSpline2Shape>;
   const double alpha = scene_.flip_blend;
@@ -871,6 +884,9 @@ void Solver<D>::gather(double dt, Reach reach) {
       if constexpr ((Parts & kGradient) != 0) {
         if (!usl) return false;  // the gradient was the affine matrix (linear kernel, GIMP)
         return take_gradient(p, s.gradient, L);  // Enhanced layer particles: layer_gather adds
+      } else if constexpr (bspline && (Parts & kMoment) != 0) {
+        // MLS-MPM: the velocity gradient is the affine matrix B_p D^-1.
+        if (mls) return take_gradient(p, P.affine[p], L);
       }
       return false;
     };
@@ -886,7 +902,9 @@ void Solver<D>::gather(double dt, Reach reach) {
   using std::integral_constant;
   if (apic) {
     constexpr unsigned affine = bspline ? kMoment : kGradient;
-    if (usl) {
+    if (mls && bspline) {
+      pass(integral_constant<unsigned, kMoment>{});
+    } else if (usl) {
       pass(integral_constant<unsigned, affine | kGradient>{});
     } else {
       pass(integral_constant<unsigned, affine>{});
@@ -1007,7 +1025,7 @@ void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
 
 template <int D>
 void Solver<D>::grid_to_particles(double dt) {
-  const bool usl = scene_.update == UpdateScheme::usl;
+  const bool usl = scene_.update != UpdateScheme::musl;  // USL or MLS
   dispatch_shape(scene_.shape, [&](auto shape) {
     using Shape = decltype(shape);
     couple_beside(false, [&](Reach reach) { gather<Shape>(dt, reach); });

@@ -95,7 +95,7 @@ json sliding_block(const std::string& method, const std::string& condition) {
 }
 
 TEST(Allocation, StandardStepsAllocateNothing) {
-  for (const char* update : {"musl", "usl"}) {
+  for (const char* update : {"musl", "usl", "mls"}) {
     for (const char* storage : {"dense", "sparse"}) {
       const std::string what = std::string(update) + ", " + storage;
       const Count c1 = allocations_in_steps<1>(mpm::test::parse(moving_block(1, update, storage)));

@@ -277,6 +277,20 @@ TEST_F(CommandLine, RejectsFrictionCoefficientOnSlipWall) {
   expect_rejected("/walls/1/mu", {"friction"});
 }
 
+TEST_F(CommandLine, RejectsMlsUpdateWithoutApicOrTheBSpline) {
+  // MLS-MPM takes its force and gradient from C_p = B_p D^-1, whose D is constant only for the
+  // quadratic B-spline, and C_p is APIC's: with FLIP or another kernel the step would be wrong.
+  json scene = scene_2d();
+  scene["scheme"] = {{"update", "mls"}, {"transfer", "flip"}};
+  write_scene(scene);
+  expect_rejected("/scheme/update", {"\"mls\"", "apic", "bspline2"});
+  scene = scene_2d();
+  scene["scheme"]["update"] = "mls";
+  scene["shape_function"] = "gimp";
+  write_scene(scene);
+  expect_rejected("/scheme/update", {"\"mls\"", "apic", "bspline2"});
+}
+
 TEST_F(CommandLine, RejectsTouchToleranceOnBoxWall) {
   // Box walls act on every node near them (standard MPM); accepting the key would mislead.
   json scene = scene_2d();
@@ -292,6 +306,18 @@ json scene_2d_dual_floor() {
     "name": "floor", "method": "mortar", "condition": "friction", "mu": 0.3,
     "surface": { "type": "polyline", "points": [[0.0, 0.1], [1.0, 0.1]] } })");
   return scene;
+}
+
+TEST_F(CommandLine, RejectsBlendingWallUnlessMusl) {
+  // USL and MLS take the boundary grid's strain rate from v^{n+1}: on Blending walls in 2D and
+  // 3D that diverged (docs/blending.md), so the scene is refused, naming the wall's method.
+  for (const char* update : {"usl", "mls"}) {
+    SCOPED_TRACE(update);
+    json scene = scene_2d_dual_floor();
+    scene["scheme"]["update"] = update;
+    write_scene(scene);
+    expect_rejected("/walls/0/method", {"Blending wall (mortar)", "musl", update});
+  }
 }
 
 TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
@@ -556,6 +582,23 @@ TEST_F(CommandLine, VerifyRejectsMalformedCaseFile) {
   fs::remove_all(dir);
 }
 
+// `mpm verify --update mls`: the cases run under MLS-MPM; what it cannot run (a Blending wall, the
+// linear kernel of the bar case) is listed as not run, neither passed nor failed, and the rest is
+// checked as usual (the grid case passes: exit 0).
+TEST_F(CommandLine, VerifyUnderMlsListsTheCasesItCannotRun) {
+  const RunResult r =
+      run_mpm({"verify", "--update", "mls", "--case", "particle_vs_wall_2d", "--case",
+               "bar_impact_1d", "--method", "grid", "--method", "mortar"});
+  EXPECT_EQ(r.exit_code, 0) << r.out << r.err;
+  EXPECT_TRUE(contains(r.out, "mortar     1  not run: a Blending wall (mortar) needs MUSL"))
+      << r.out;
+  EXPECT_TRUE(contains(r.out, "not run: MLS-MPM needs the quadratic B-spline")) << r.out;
+  EXPECT_TRUE(contains(r.out, "4 of 4 checks pass")) << r.out;  // the grid wall's four angles
+  const RunResult bad = run_mpm({"verify", "--update", "flip", "--case", "bar_impact_1d"});
+  EXPECT_EQ(bad.exit_code, 2) << bad.err;
+  EXPECT_TRUE(contains(bad.err, "--update")) << bad.err;
+}
+
 // `mpm bench`: a series, part or configuration that does not exist or does not parse is bad
 // input (exit 2, one line naming the file and key), caught before anything runs.
 TEST_F(CommandLine, BenchRejectsBadConfigurations) {
@@ -627,7 +670,7 @@ TEST_F(CommandLine, BenchPerfRunsTheYardsticksScriptAndDividesByItsRate) {
     const double rate = threads == 1 ? 4.0 : 8.0;
     EXPECT_EQ(perf["yardstick"]["median"].get<double>(), rate);
     EXPECT_EQ(perf["yardstick"]["rates"].size(), 1U);
-    for (const char* update : {"standard_musl", "standard_usl"}) {
+    for (const char* update : {"standard_musl", "standard_usl", "standard_mls"}) {
       const double ours =
           perf[update]["all_threads"]["particle_steps_per_second"].get<double>() * 1e-6;
       EXPECT_NEAR(perf[update]["yardstick_ratio"].get<double>(), ours / rate, 1e-12 * ours / rate);
@@ -658,7 +701,7 @@ TEST_F(CommandLine, BenchPerfDropsTheRatioWhenALaterYardstickRunFails) {
   EXPECT_EQ(perf["yardstick"]["rates"].size(), 1U);
   EXPECT_FALSE(perf["yardstick"].contains("median"));
   EXPECT_TRUE(contains(perf["yardstick"]["error"].get<std::string>(), "exited with status 4"));
-  for (const char* update : {"standard_musl", "standard_usl"}) {
+  for (const char* update : {"standard_musl", "standard_usl", "standard_mls"}) {
     EXPECT_FALSE(perf[update].contains("yardstick_ratio")) << update;
     EXPECT_GT(perf[update]["all_threads"]["particle_steps_per_second"].get<double>(), 0.0);
   }

@@ -23,7 +23,7 @@ class SceneError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
-enum class UpdateScheme { usl, musl };
+enum class UpdateScheme { usl, musl, mls };
 enum class Transfer { flip, apic };  ///< flip with flip_blend = 0 is PIC
 
 struct MaterialSpec {

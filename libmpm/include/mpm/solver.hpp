@@ -195,7 +195,7 @@ class Solver final : public Simulation {
   template <class Shape>
   void scatter_factorised(const Stencil<D, Shape>& st, double m, const double (&v)[D],
                           const double (&C)[D][D], const double (*body_force)[D],
-                          const double (*stress)[D][D]);
+                          const double (*stress)[D][D], bool mls);
   /// layer_couple(remapped) and pass(Reach): the coupling on one core beside pass(free), then
   /// pass(near), where a wall has layer particles this step; else pass(all).
   template <class Pass>
