@@ -80,15 +80,6 @@ Run run_scene_doc(const json& case_doc, const std::string& label, const Observer
     if (g_update == "mls" && transfer != "apic") {
       throw NotApplicable("MLS-MPM needs APIC; this case runs " + transfer);
     }
-    if (g_update != "musl" && doc.contains("walls")) {
-      for (const json& wall : doc["walls"]) {
-        if (!wall.contains("surface")) continue;  // a box face: standard MPM
-        const std::string method = wall.value("method", "mortar");
-        if (method == "mortar" || method == "one-way") {
-          throw NotApplicable("a Blending wall (" + method + ") needs MUSL");
-        }
-      }
-    }
     doc["scheme"]["update"] = g_update;
   }
   Run r;

@@ -1223,18 +1223,42 @@ void Solver<D>::layer_gather(double dt) {
     const auto p = static_cast<std::size_t>(layer_list_[i]);
     const DualWall<D>& w = dual_[P.layer_wall[p]];
     const AlphaStencil<D>& st = layer_stencil_[i];
-    double sum[D] = {}, change[D] = {};
+    // USL and MLS take a Blending layer particle's strain rate (and APIC's C_p) from v^{n+1}
+    // here. A node at or below the coupling threshold is left out of the coupling, and its
+    // v^{n+1} is a sliver of mass's own acceleration (of order |grad N| / N), not the
+    // material's: such nodes are treated as moving with the particle, as gather() treats the
+    // standard grid's nodes below the mass threshold (the value renormalised over the others, the
+    // gradient sum (v_k - v_p) grad N_k over them). Without it a block sliding on an inclined
+    // mortar wall diverged within 0.2 s at every angle (docs/blending.md, "Update scheme").
+    // MUSL takes both from the remapped field (layer_gather_gradient()) and keeps every node.
+    const bool skip_light = usl && !w.enhanced;
+    double sum[D] = {}, change[D] = {}, grad_sum[D] = {}, moment[D][D] = {}, weight = 0.0;
     for (int k = 0; k < st.count; ++k) {
+      if (skip_light && w.mass[st.node[k]] <= coupling_threshold_) continue;
       const double* v_new = w.velocity_new[st.node[k]].data();
       const double* v_old = w.velocity[st.node[k]].data();
+      weight += st.N[k];
       for (int a = 0; a < D; ++a) {
         sum[a] += st.N[k] * v_new[a];
         change[a] += st.N[k] * (v_new[a] - v_old[a]);
+        grad_sum[a] += st.dN[k][a];
+        for (int b = 0; b < D; ++b) moment[a][b] += v_new[a] * st.dN[k][b];
       }
     }
-    const Vec<D> value = Eigen::Map<const Vec<D>>(sum);
-    const Vec<D> increment = Eigen::Map<const Vec<D>>(change);
-    const Mat<D> L = usl ? stencil_gradient(w.velocity_new, st) : Mat<D>::Zero();
+    Vec<D> value = Eigen::Map<const Vec<D>>(sum);
+    Vec<D> increment = Eigen::Map<const Vec<D>>(change);
+    Mat<D> L = Mat<D>::Zero();
+    if (skip_light) {
+      if (weight > 0.0) {
+        value /= weight;
+        increment /= weight;
+        for (int a = 0; a < D; ++a) {
+          for (int b = 0; b < D; ++b) L(a, b) = moment[a][b] - value[a] * grad_sum[b];
+        }
+      }
+    } else if (usl) {
+      L = stencil_gradient(w.velocity_new, st);
+    }
     if (w.enhanced) {
       // The enhancement adds to what gather() took from the standard grid.
       if (apic) {

@@ -472,15 +472,6 @@ DualWallSpec read_dual_wall(Reader& r, int index, const Scene& scene) {
   wall.contact = read_contact(r, wall.method != CouplingMethod::sdf);
   const bool blending =
       wall.method == CouplingMethod::mortar || wall.method == CouplingMethod::one_way;
-  if (blending && scene.update != UpdateScheme::musl) {
-    // Their boundary grid's linear basis takes the strain rate and C_p from the remapped,
-    // re-coupled field; from v^{n+1} (USL, MLS) a block sliding on an inclined Blending wall
-    // diverged within 0.1 s at every angle (docs/blending.md, "Update scheme").
-    r.fail_at(r.child("method"),
-              "a Blending wall (" + method +
-                  ") needs \"scheme\": {\"update\": \"musl\"}, the scene has \"" +
-                  (scene.update == UpdateScheme::usl ? "usl" : "mls") + "\"");
-  }
   if (r.has("multiplier_radius")) {
     if (!blending) {
       r.fail_at(r.child("multiplier_radius"),

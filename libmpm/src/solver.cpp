@@ -115,10 +115,16 @@ Solver<D>::Solver(const Scene& scene) : scene_(scene) {
   // may be smaller than the standard grid's. With APIC their linear basis takes C_p = grad v at
   // full weight from nodes the particle barely reaches; the incline and free-flight tests
   // (test_blending) show that stays stable only at about half the CFL number of the cell, so
-  // the layer's cell size counts half there.
-  const double layer_factor = scene.transfer == Transfer::apic ? 0.5 : 1.0;
+  // the layer's cell size counts half there. So it does under USL and MLS for a Blending wall,
+  // whose layer particles take their strain rate from v^{n+1} on that basis (with PIC and FLIP
+  // the incline block diverged at the full cell, docs/blending.md).
+  const bool apic = scene.transfer == Transfer::apic;
+  const bool usl = scene.update != UpdateScheme::musl;
   step_size_ = grid.h;
-  for (const auto& w : dual_) step_size_ = std::min(step_size_, layer_factor * w.min_cell_size);
+  for (const auto& w : dual_) {
+    const double layer_factor = apic || (usl && !w.enhanced) ? 0.5 : 1.0;
+    step_size_ = std::min(step_size_, layer_factor * w.min_cell_size);
+  }
   wave_speed_ = max_wave_speed(scene);
   viscous_dt_ = viscous_dt_limit(scene, step_size_);
   for (std::size_t p = 0; p < particles.size(); ++p) {

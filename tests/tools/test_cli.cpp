@@ -308,18 +308,6 @@ json scene_2d_dual_floor() {
   return scene;
 }
 
-TEST_F(CommandLine, RejectsBlendingWallUnlessMusl) {
-  // USL and MLS take the boundary grid's strain rate from v^{n+1}: on Blending walls in 2D and
-  // 3D that diverged (docs/blending.md), so the scene is refused, naming the wall's method.
-  for (const char* update : {"usl", "mls"}) {
-    SCOPED_TRACE(update);
-    json scene = scene_2d_dual_floor();
-    scene["scheme"]["update"] = update;
-    write_scene(scene);
-    expect_rejected("/walls/0/method", {"Blending wall (mortar)", "musl", update});
-  }
-}
-
 TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
   // A block resting in the dual floor's layer: its coupling is assembled and solved every step.
   json scene = scene_2d_dual_floor();
@@ -582,18 +570,19 @@ TEST_F(CommandLine, VerifyRejectsMalformedCaseFile) {
   fs::remove_all(dir);
 }
 
-// `mpm verify --update mls`: the cases run under MLS-MPM; what it cannot run (a Blending wall, the
-// linear kernel of the bar case) is listed as not run, neither passed nor failed, and the rest is
-// checked as usual (the grid case passes: exit 0).
+// `mpm verify --update mls`: the cases run under MLS-MPM; what it cannot run (the bar case's
+// linear kernel) is listed as not run, neither passed nor failed, and the rest is checked as
+// usual (the particle thrown at the grid and the mortar wall passes at four angles each: exit 0).
 TEST_F(CommandLine, VerifyUnderMlsListsTheCasesItCannotRun) {
   const RunResult r =
       run_mpm({"verify", "--update", "mls", "--case", "particle_vs_wall_2d", "--case",
                "bar_impact_1d", "--method", "grid", "--method", "mortar"});
   EXPECT_EQ(r.exit_code, 0) << r.out << r.err;
-  EXPECT_TRUE(contains(r.out, "mortar     1  not run: a Blending wall (mortar) needs MUSL"))
+  EXPECT_TRUE(contains(r.out,
+                       "bar_impact_1d          mortar     1  not run: MLS-MPM needs the "
+                       "quadratic B-spline"))
       << r.out;
-  EXPECT_TRUE(contains(r.out, "not run: MLS-MPM needs the quadratic B-spline")) << r.out;
-  EXPECT_TRUE(contains(r.out, "4 of 4 checks pass")) << r.out;  // the grid wall's four angles
+  EXPECT_TRUE(contains(r.out, "8 of 8 checks pass")) << r.out;
   const RunResult bad = run_mpm({"verify", "--update", "flip", "--case", "bar_impact_1d"});
   EXPECT_EQ(bad.exit_code, 2) << bad.err;
   EXPECT_TRUE(contains(bad.err, "--update")) << bad.err;
