@@ -1241,6 +1241,9 @@ void Solver<D>::layer_gather(double dt) {
       for (int a = 0; a < D; ++a) {
         sum[a] += st.N[k] * v_new[a];
         change[a] += st.N[k] * (v_new[a] - v_old[a]);
+      }
+      if (!skip_light) continue;
+      for (int a = 0; a < D; ++a) {
         grad_sum[a] += st.dN[k][a];
         for (int b = 0; b < D; ++b) moment[a][b] += v_new[a] * st.dN[k][b];
       }
