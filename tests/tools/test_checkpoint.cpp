@@ -72,12 +72,16 @@ json scene(const std::string& wall_method) {
                      {"file", mpm::test::floor_plane_file("mpm_checkpoint", base, -h, 1.0 + h)},
                      {"remesh", true}}}}};
   } else {
+    // mortar_mls: the mortar scene under MLS-MPM (USL's order, its layer gather without the
+    // light nodes).
+    const bool mls = wall_method == "mortar_mls";
+    if (mls) s["scheme"]["update"] = "mls";
     // Wall from (0.1, 0.8) down to (1.1, 0.2267): 30 degrees; block resting on it.
     s["bodies"] = json::parse(R"([{ "name": "block", "material": "rubber",
         "shape": { "type": "disk", "center": [0.35, 0.78], "radius": 0.1 } }])");
     s["walls"] = json::array(
         {{{"name", "incline"},
-          {"method", wall_method},
+          {"method", mls ? "mortar" : wall_method},
           {"condition", "friction"},
           {"mu", 0.3},
           {"separable", true},
@@ -164,7 +168,8 @@ TEST_P(Checkpoint, StoppedAndResumedRunIsBitIdentical) {
 // the factorisation in hand too (without them the resumed run formed and factorised the matrix
 // anew and parted from the uninterrupted one, halted after steps 116-128 of 155).
 INSTANTIATE_TEST_SUITE_P(Walls, Checkpoint,
-                         ::testing::Values("mortar", "granular", "enhanced", "enhanced_3d"));
+                         ::testing::Values("mortar", "granular", "enhanced", "enhanced_3d",
+                                           "mortar_mls"));
 
 /// The inode of `file` (0 if absent): a checkpoint is renamed into place, so a new one is a new
 /// inode.
