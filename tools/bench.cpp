@@ -406,7 +406,7 @@ json plane_doc(int dim, const Plane& plane, double height, const std::string& me
     if (!obj) throw std::runtime_error("cannot write " + mesh_file.string());
     wall["surface"] = {{"type", "mesh"}, {"file", mesh_file.string()}, {"remesh", true}};
   }
-  doc["walls"] = {wall};
+  doc["walls"] = json::array({wall});
   return doc;
 }
 

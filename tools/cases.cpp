@@ -168,7 +168,7 @@ std::vector<Check> bar_impact(const json& p, const std::string& method, int k) {
     w["name"] = "wall";
     w["method"] = method;
     w["surface"] = {{"type", "point"}, {"position", xw}, {"side", 1}};
-    doc["walls"] = {w};
+    doc["walls"] = json::array({w});
   }
   double plateau = 0.0, time = 0.0;
   Run r = run_scene_doc(doc, "bar_impact_1d", [&](Simulation& s, double t, double dt) {
@@ -293,7 +293,7 @@ json incline_doc_2d(const Frame2& f, double theta_deg, const std::string& method
     doc["grid"]["min"][1] = 0.0;  // the floor on the box face y = 0
     json w = contact(mu, true);
     w["face"] = "ymin";
-    doc["walls"] = {w};
+    doc["walls"] = json::array({w});
   } else {
     json w = contact(mu, true);
     w["name"] = "incline";
@@ -305,7 +305,7 @@ json incline_doc_2d(const Frame2& f, double theta_deg, const std::string& method
       points.push_back(vec({x.x(), x.y()}));
     }
     w["surface"] = {{"type", "polyline"}, {"points", points}};
-    doc["walls"] = {w};
+    doc["walls"] = json::array({w});
   }
   return doc;
 }
@@ -447,7 +447,7 @@ std::vector<Check> incline_block_3d(const json& p, const std::string& method, in
         wall["method"] = method;
         wall["surface"] = {{"type", "mesh"}, {"file", mesh.string()}, {"remesh", true}};
       }
-      doc["walls"] = {wall};
+      doc["walls"] = json::array({wall});
       Eigen::Vector3d down = s;
       double mass = 0.0, travel = 0.0, window = 0.0;
       // The wall's reaction, averaged from 0.1 T (past the first settling swings) to T.

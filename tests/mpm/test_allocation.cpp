@@ -90,7 +90,7 @@ json sliding_block(const std::string& method, const std::string& condition) {
         {"remesh", true}};
     wall["method"] = method;
   }
-  doc["walls"] = {wall};
+  doc["walls"] = json::array({wall});
   return doc;
 }
 

@@ -1149,7 +1149,7 @@ TEST_P(CornerImpact, NothingLeavesThroughTheFootOfAWall) {
          {"particles_per_cell", 2},
          {"velocity", {v0, 0.0}},
          {"shape", {{"type", "box"}, {"min", {0.1, 0.0}}, {"max", {wall_x - 0.05, 0.1}}}}}}},
-      {"walls", {wall}},
+      {"walls", json::array({wall})},
       {"time", {{"end", 0.4}, {"cfl", 0.5}}}};
   const Scene scene = parse_scene(doc, "<corner impact>");
   // The corner rule is the Blending walls' default (the scene does not ask for it).
