@@ -57,7 +57,7 @@ inline mpm::Scene block_scene(int cells, const char* update = "musl",
   return mpm::parse_scene(doc, "<bench>");
 }
 
-inline mpm::Scene floor_scene(int cells, int method) {
+inline mpm::Scene floor_scene(int cells, int method, const char* update = "musl") {
   const double h = 1.0 / cells;
   const double base = method == 0 ? 0.0 : 0.3 * h;  // dual-grid floor off the grid lines
   nlohmann::json wall;
@@ -80,7 +80,7 @@ inline mpm::Scene floor_scene(int cells, int method) {
       {"dimension", 3},
       {"grid", {{"min", {-h, -h, 0.0}}, {"max", {1.0 + h, 1.0 + h, 12.0 * h}}, {"spacing", h}}},
       {"shape_function", "bspline2"},
-      {"scheme", {{"update", "musl"}, {"transfer", "apic"}}},
+      {"scheme", {{"update", update}, {"transfer", "apic"}}},
       {"gravity", {0.0, 0.0, -9.81}},
       {"materials", nlohmann::json::array({material()})},
       {"bodies",

@@ -664,6 +664,17 @@ TEST_F(CommandLine, BenchPerfRunsTheYardsticksScriptAndDividesByItsRate) {
           perf[update]["all_threads"]["particle_steps_per_second"].get<double>() * 1e-6;
       EXPECT_NEAR(perf[update]["yardstick_ratio"].get<double>(), ours / rate, 1e-12 * ours / rate);
     }
+    // The floor's wall methods against its standard wall, under MUSL and under MLS-MPM.
+    for (const char* floor : {"floor", "floor_mls"}) {
+      for (const char* method : {"mortar", "one_way", "enhanced", "mortar_merged"}) {
+        const json& entry = perf.at(floor).at(method);
+        EXPECT_NEAR(entry.at("ratio_to_standard").get<double>(),
+                    entry.at("ms_per_step").get<double>() /
+                        perf.at(floor).at("standard").at("ms_per_step").get<double>(),
+                    1e-12)
+            << floor << " " << method;
+      }
+    }
   }
 }
 
