@@ -646,13 +646,13 @@ std::vector<Check> two_disks(const json& p, const std::string& method, int k) {
   const double h = param(p, "spacing") / k, v = param(p, "speed");
   std::vector<Check> out;
   for (const auto& [listed, listed_scheme] : p.at("schemes").items()) {
-    // Under --update the scheme's update is replaced, and its label says so ("MUSL/APIC" ->
-    // "MLS/APIC"); MLS-MPM runs APIC only, so the FLIP disks are left out under it.
+    // Under --update (run_scene_doc() replaces the scheme's update) the label says so ("MUSL/APIC"
+    // -> "MLS/APIC"); MLS-MPM runs APIC only, so the FLIP disks are left out under it (here,
+    // not by run_scene_doc()'s NotApplicable, which would drop the APIC disks with them).
     std::string label = listed;
-    json scheme = listed_scheme;
+    const json& scheme = listed_scheme;
     if (!g_update.empty()) {
       if (g_update == "mls" && scheme.value("transfer", "apic") != "apic") continue;
-      scheme["update"] = g_update;
       std::string name = g_update;
       for (char& ch : name) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
       const std::size_t slash = label.find('/');

@@ -438,10 +438,10 @@ template <class Shape>
 void Solver<D>::scatter(bool with_force) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
-  // MLS-MPM: the force -V sigma D^-1 (x_I - x_p) N_I in place of -V sigma grad N_I (D^-1 = 4/h^2
-  // for the quadratic B-spline, the one kernel the scene accepts with it).
+  // MLS-MPM: the force -V sigma D^-1 (x_I - x_p) N_I in place of -V sigma grad N_I (the quadratic
+  // B-spline's D^-1, the one kernel the scene accepts with it).
   const bool mls = scene_.update == UpdateScheme::mls;
-  const double inv_d = 4.0 * grid.inv_h * grid.inv_h;
+  const double inv_d = BSpline2Shape::inverse_inertia(grid.inv_h);
   // f(mass, momentum, force) with the grid's layout fixed at compile time (Grid::access).
   auto in_layout = [&](auto&& f) {
     if (grid.sparse) {
@@ -867,7 +867,7 @@ void Solver<D>::gather(double dt, Reach reach) {
   const bool displace = !P.displacement.empty();
   constexpr bool bspline = std::is_same_v<Shape, BSpline2Shape>;
   const double alpha = scene_.flip_blend;
-  const double inv_d = 4.0 * grid.inv_h * grid.inv_h;
+  const double inv_d = BSpline2Shape::inverse_inertia(grid.inv_h);
   auto pass = [&](auto parts) {
     constexpr unsigned Parts = decltype(parts)::value;
     // Gathers particle p; with the gradient (USL), true if its stress is to be updated now.

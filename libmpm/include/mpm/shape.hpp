@@ -58,6 +58,8 @@ struct GimpShape {
 
 struct BSpline2Shape {
   static constexpr int support = 3;
+  /// D_p^-1 of APIC and MLS-MPM: sum_I N_I (x_I - x_p)(x_I - x_p)^T = h^2/4 I for this kernel.
+  static double inverse_inertia(double inv_h) { return 4.0 * inv_h * inv_h; }
   static void weights(double xg, double /*lp*/, int& base, double* w, double* dw) {
     base = static_cast<int>(std::floor(xg - 0.5));
     const double fx = xg - base;  // in [0.5, 1.5)
