@@ -899,7 +899,7 @@ void Solver<D>::layer_couple(bool remapped) {
         const PartTimer<D> timer(w, w.solve_seconds);
         // The coupled v^n only for FLIP's increment (v^{n+1} - v^n): PIC and APIC gather v^{n+1},
         // and MUSL's remap solves the old velocities anew (as the Blending walls below).
-        if (scene_.transfer != Transfer::apic && scene_.flip_blend > 0.0) {
+        if (flip_increment()) {
           enhanced_solve(w, grid.velocity, w.momentum, w.velocity, false, false);
         }
         enhanced_solve(w, grid.velocity_new, w.momentum_new, w.velocity_new, true, true);
@@ -1105,7 +1105,7 @@ void Solver<D>::layer_couple(bool remapped) {
     } else {
       solve(grid.velocity_new, w.velocity_new);
       // Only FLIP reads the old velocities again (v^{n+1} - v^n); PIC and APIC gather v^{n+1}.
-      if (scene_.transfer != Transfer::apic && scene_.flip_blend > 0.0) {
+      if (flip_increment()) {
         solve(grid.velocity, w.velocity);
       }
     }

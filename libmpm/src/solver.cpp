@@ -269,7 +269,7 @@ double Solver<D>::stable_dt(double cfl) const {
 template <int D>
 void Solver<D>::step(double dt) {
   lap_start_ = std::chrono::steady_clock::now();
-  particles_to_grid();
+  particles_to_grid(dt);
   update_grid(dt);
   lap(&PhaseTimes::grid_update);
   apply_walls();
@@ -325,12 +325,14 @@ void Solver<D>::bin_particles_into_slabs() {
 // One particle's share of the 3D grid, the sums factorised along the axes (as in
 // sample_grid_factorised(): N = w_i w_j w_k, so the terms that do not depend on k are formed once
 // per row of S nodes): momentum N m (v + C (x_I - x_p)) and, with `body_force` (m b) and
-// `stress` (-V sigma), mass N m and force N m b - V sigma grad N.
+// `stress` (-V sigma), mass N m and force N m b - V sigma grad N. With `mls` the force is
+// MLS-MPM's, and with `fold` it goes into the momentum as dt f (see scatter()).
 template <int D>
 template <class Shape>
 void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const double (&v)[D],
                                    const double (&C)[D][D], const double (*body_force)[D],
-                                   const double (*stress)[D][D], bool mls) {
+                                   const double (*stress)[D][D], bool mls, bool fold,
+                                   double dt) {
   static_assert(D == 3);
   constexpr int S = Shape::support;
   const auto& w = st.w;
@@ -358,6 +360,15 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   for (int a = 0; a < 3; ++a) {
     mv[a] = m * v[a];
     for (int b = 0; b < 3; ++b) mc[a][b] = m * C[a][b];
+  }
+  // With `fold` (MLS), dt f_I = dt N (m b - V sigma D^-1 (x_I - x_p)) has the momentum's form: it
+  // joins the particle's m v and m C once, and the rows below add nothing for it.
+  fold = fold && body_force != nullptr;
+  if (fold) {
+    for (int a = 0; a < 3; ++a) {
+      mv[a] += dt * (*body_force)[a];
+      for (int b = 0; b < 3; ++b) mc[a][b] += dt * (*stress)[a][b];
+    }
   }
   const int(&k_offset)[S] = st.offset[2];
   // The arrays with the layout fixed at compile time: a blocked index costs a shift, a mask
@@ -400,18 +411,22 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
         }
         add_row(momentum, row, p, w2, q, wx2);
         if (body_force == nullptr) continue;
-        const auto& mb = *body_force;
-        const auto& vs = *stress;
-        double r[3], t[3];  // force = r w_k + t dw_k
-        for (int a = 0; a < 3; ++a) {
-          r[a] = wij * mb[a] + vs[a][0] * g[0][i] * w[1][j] + vs[a][1] * w[0][i] * g[1][j];
-          t[a] = wij * vs[a][2];
+        if (!fold) {
+          const auto& mb = *body_force;
+          const auto& vs = *stress;
+          double r[3], t[3];  // force = r w_k + t dw_k
+          for (int a = 0; a < 3; ++a) {
+            r[a] = wij * mb[a] + vs[a][0] * g[0][i] * w[1][j] + vs[a][1] * w[0][i] * g[1][j];
+            t[a] = wij * vs[a][2];
+          }
+          add_row(force, row, r, w2, t, dw2);
         }
-        add_row(force, row, r, w2, t, dw2);
-        const double wm = wij * m;
-        for (int k = 0; k < S; ++k) {
-          const int node = kContiguous ? row + k_offset[0] + k : row + k_offset[k];
-          mass[static_cast<std::size_t>(node)] += wm * w[2][k];
+        {
+          const double wm = wij * m;
+          for (int k = 0; k < S; ++k) {
+            const int node = kContiguous ? row + k_offset[0] + k : row + k_offset[k];
+            mass[static_cast<std::size_t>(node)] += wm * w[2][k];
+          }
         }
       }
     }
@@ -433,14 +448,20 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
 // Scatter mass and momentum (APIC adds m_p C_p (x_I - x_p), Jiang et al. 2015 eq. 12) and, with
 // forces, f_I = -V_p sigma_p grad N_I + m_p N_I b_p. Slabs of one parity run in parallel: a
 // particle's stencil reaches at most 2 nodes past its slab, and slab_width = 4 > 2 + 1.
+// MLS-MPM scatters the momentum after the force, p_I + dt f_I, as Hu et al. (2018) do, and leaves
+// the force array at zero: its force has the momentum's form N (x_I - x_p), so one row update
+// serves both (a node's mass and three momentum components written instead of seven), and nothing
+// reads the old grid momentum (MLS has no remap; the scenes it runs are APIC, and a test's FLIP
+// keeps the force apart: force_in_momentum()).
 template <int D>
 template <class Shape>
-void Solver<D>::scatter(bool with_force) {
+void Solver<D>::scatter(bool with_force, double dt) {
   auto& P = particles;
   const bool apic = scene_.transfer == Transfer::apic;
   // MLS-MPM: the force -V sigma D^-1 (x_I - x_p) N_I in place of -V sigma grad N_I (the quadratic
   // B-spline's D^-1, the one kernel the scene accepts with it).
   const bool mls = scene_.update == UpdateScheme::mls;
+  const bool fold = force_in_momentum();
   const double inv_d = BSpline2Shape::inverse_inertia(grid.inv_h);
   // f(mass, momentum, force) with the grid's layout fixed at compile time (Grid::access).
   auto in_layout = [&](auto&& f) {
@@ -472,7 +493,7 @@ void Solver<D>::scatter(bool with_force) {
         for (int b = 0; b < D; ++b) vs[a][b] = stress(a, b);
       }
       if constexpr (D == 3) {
-        scatter_factorised(st, m, v, C, &mb, &vs, mls);
+        scatter_factorised(st, m, v, C, &mb, &vs, mls, fold, dt);
         return;
       }
       in_layout([&](const auto& mass, const auto& momenta, const auto& forces) {
@@ -488,14 +509,18 @@ void Solver<D>::scatter(bool with_force) {
               va += C[a][b] * dx[b];
               fa += vs[a][b] * (mls ? N * dx[b] : dN[b]);
             }
-            momentum[a] += Nm * va;
-            force[a] += fa;
+            if (fold) {
+              momentum[a] += Nm * va + dt * fa;
+            } else {
+              momentum[a] += Nm * va;
+              force[a] += fa;
+            }
           }
         });
       });
     } else {
       if constexpr (D == 3) {
-        scatter_factorised(st, m, v, C, nullptr, nullptr, false);
+        scatter_factorised(st, m, v, C, nullptr, nullptr, false, false, 0.0);
         return;
       }
       in_layout([&](const auto& /*mass*/, const auto& momenta, const auto& /*forces*/) {
@@ -521,7 +546,7 @@ void Solver<D>::scatter(bool with_force) {
 }
 
 template <int D>
-void Solver<D>::particles_to_grid() {
+void Solver<D>::particles_to_grid(double dt) {
   locate_in_layers();
   lap(&PhaseTimes::locate);
   bin_particles_into_slabs();
@@ -535,7 +560,7 @@ void Solver<D>::particles_to_grid() {
   tbb::parallel_for(std::size_t{0}, grid.previous_blocks.size(),
                     [&](std::size_t k) { grid.clear_previous(k); });
   grid.release_idle();
-  dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true); });
+  dispatch_shape(scene_.shape, [&](auto shape) { scatter<decltype(shape)>(true, dt); });
   grid.masses_changed();
   layer_scatter(true);
   lap(&PhaseTimes::particles_to_grid);
@@ -1042,7 +1067,7 @@ void Solver<D>::grid_to_particles(double dt) {
       // (The free particles' part of this remap beside the coupling too was slower: the scatter
       // in two halves, docs/performance.md.)
       for_each_active_node([&](std::size_t n) { grid.momentum[n].setZero(); });
-      scatter<Shape>(false);
+      scatter<Shape>(false, 0.0);
       for_each_active_node([&](std::size_t n) {
         const double m = grid.mass[n];
         grid.velocity[n] = m > mass_threshold_ ? Vec<D>(grid.momentum[n] / m) : Vec<D>::Zero();

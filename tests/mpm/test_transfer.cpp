@@ -31,7 +31,7 @@ template <int D>
 void check_conservation(const std::string& shape) {
   Solver<D> s(test::parse(test::box_scene(D, shape)));
   randomize(s, 3);
-  s.particles_to_grid();
+  s.particles_to_grid(0.0);
   double grid_mass = 0.0, particle_mass = 0.0;
   Vec<D> grid_p = Vec<D>::Zero(), particle_p = Vec<D>::Zero();
   for (std::size_t n = 0; n < s.grid.size(); ++n) {
@@ -71,7 +71,7 @@ void check_affine(const std::string& shape) {
     s.particles.velocity[p] = b + A * s.particles.position[p];
     s.particles.affine[p] = A;
   }
-  s.particles_to_grid();
+  s.particles_to_grid(0.0);
   s.update_grid(0.0);
   for (std::size_t n = 0; n < s.grid.size(); ++n) {
     if (s.grid.mass[n] == 0.0) continue;
@@ -246,6 +246,70 @@ void check_mls_gradient() {
 TEST(Mls, VelocityGradientOfAnAffineFieldIsUsls) {
   check_mls_gradient<2>();
   check_mls_gradient<3>();
+}
+
+// MLS-MPM scatters the momentum after the force, p_I + dt f_I with f_I = N_I m b - V J sigma D^-1
+// (x_I - x_p) N_I, into one array: every node's momentum matches that sum formed here node by node
+// from the stencil (to round-off), the force array stays zero, and the total is the particles'
+// momentum plus dt times their weight (the internal forces sum to zero). A force the scatter
+// dropped or scaled wrongly would show: it is a third of the momentum's norm here.
+template <int D>
+void check_mls_scatter() {
+  auto doc = test::box_scene(D, "bspline2");
+  doc["scheme"]["update"] = "mls";
+  doc["gravity"] = nlohmann::json::array();
+  for (int d = 0; d < D; ++d) doc["gravity"].push_back(d == D - 1 ? -9.81 : 2.0);
+  Solver<D> s(test::parse(doc));
+  randomize(s, 5);
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  auto& P = s.particles;
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    Mat<D> sigma;
+    for (int a = 0; a < D; ++a) {
+      for (int b = 0; b <= a; ++b) sigma(a, b) = sigma(b, a) = 2.0e4 * u(rng);
+    }
+    P.stress[p] = sigma;
+    P.deformation_gradient[p] = Mat<D>::Identity() + 0.05 * Mat<D>::Identity() * u(rng);
+  }
+  const double dt = 1e-3;
+  s.particles_to_grid(dt);
+  Vec<D> g;
+  for (int d = 0; d < D; ++d) g[d] = d == D - 1 ? -9.81 : 2.0;
+  const double inv_d = BSpline2Shape::inverse_inertia(s.grid.inv_h);
+  std::vector<Vec<D>> expected(s.grid.size(), Vec<D>::Zero()), force(s.grid.size(), Vec<D>::Zero());
+  Vec<D> particle_momentum = Vec<D>::Zero(), weight = Vec<D>::Zero();
+  for (std::size_t p = 0; p < P.size(); ++p) {
+    const double m = P.mass[p];
+    const Mat<D> vs = -P.volume0[p] * P.deformation_gradient[p].determinant() * P.stress[p] * inv_d;
+    const Stencil<D, BSpline2Shape> st(s.grid, P.position[p], P.half_width[p]);
+    st.for_each(s.grid, [&](int node, double N, const Vec<D>& /*dN*/, const Vec<D>& dx) {
+      const auto n = static_cast<std::size_t>(node);
+      expected[n] += N * m * (P.velocity[p] + P.affine[p] * dx);
+      force[n] += N * (m * g + vs * dx);
+    });
+    particle_momentum += m * P.velocity[p];
+    weight += m * g;
+  }
+  double scale = 0.0, force_norm = 0.0, error = 0.0;
+  Vec<D> grid_momentum = Vec<D>::Zero();
+  for (std::size_t n = 0; n < s.grid.size(); ++n) {
+    expected[n] += dt * force[n];
+    scale = std::max(scale, expected[n].norm());
+    force_norm = std::max(force_norm, dt * force[n].norm());
+    error = std::max(error, (s.grid.momentum[n] - expected[n]).norm());
+    ASSERT_EQ(s.grid.force[n], Vec<D>::Zero()) << "node " << n << ", " << D << "D";
+    grid_momentum += s.grid.momentum[n];
+  }
+  EXPECT_GT(force_norm, 0.3 * scale) << D << "D";
+  EXPECT_LT(error, 1e-13 * scale) << D << "D";
+  EXPECT_LT((grid_momentum - particle_momentum - dt * weight).norm(), 1e-13 * scale * P.size())
+      << D << "D";
+}
+
+TEST(Mls, ScattersTheMomentumAfterTheForce) {
+  check_mls_scatter<2>();
+  check_mls_scatter<3>();
 }
 
 // A step stops at the first particle that went bad and names it: a particle whose F is

@@ -59,6 +59,8 @@ struct Grid {
   Index<D> nodes = Index<D>::Ones();  ///< nodes per axis (the box; storage is padded to blocks)
 
   NodeField<double> mass;
+  /// Under MLS-MPM the momentum after the force, p_I + dt f_I, with the force left at zero (so
+  /// `velocity` is v_I^{n+1} too; nothing reads v_I^n under MLS: Solver::scatter()).
   NodeField<Vec<D>> momentum;
   NodeField<Vec<D>> force;
   NodeField<Vec<D>> velocity;      ///< v_I^n = p_I / m_I (before the force update)

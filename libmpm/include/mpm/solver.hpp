@@ -2,7 +2,8 @@
 // The explicit MPM solver on the standard grid, templated on the dimension. A step reads like
 // the algorithm:
 //
-//   particles_to_grid();        // mass, momentum, internal and external force
+//   particles_to_grid(dt);      // mass, momentum, internal and external force (MLS-MPM:
+//                               // the momentum after the force, p_I + dt f_I)
 //   update_grid(dt);            // v_I^{n+1} = (p_I + dt f_I) / m_I
 //   apply_walls();              // wall conditions on the box faces and on the Gamma nodes
 //   grid_to_particles(dt);      // dual-grid walls: multipliers on Phi tie the two grids (on one
@@ -160,7 +161,8 @@ class Solver final : public Simulation {
   }
 
   // The phases of a step, public so tests can check each one.
-  void particles_to_grid();
+  /// dt: MLS-MPM scatters the momentum after the force, p_I + dt f_I (scatter()).
+  void particles_to_grid(double dt);
   void update_grid(double dt);
   void apply_walls();
   /// Couples the dual-grid walls first (layer_couple(), beside the gather of the particles whose
@@ -191,11 +193,11 @@ class Solver final : public Simulation {
     return reach == Reach::all || (near_coupling_[p] != 0) == (reach == Reach::near);
   }
   template <class Shape>
-  void scatter(bool with_force);
+  void scatter(bool with_force, double dt);
   template <class Shape>
   void scatter_factorised(const Stencil<D, Shape>& st, double m, const double (&v)[D],
                           const double (&C)[D][D], const double (*body_force)[D],
-                          const double (*stress)[D][D], bool mls);
+                          const double (*stress)[D][D], bool mls, bool fold, double dt);
   /// layer_couple(remapped) and pass(Reach): the coupling on one core beside pass(free), then
   /// pass(near), where a wall has layer particles this step; else pass(all).
   template <class Pass>
@@ -237,6 +239,15 @@ class Solver final : public Simulation {
   void enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
                       const std::vector<Vec<D>>& alpha_momentum, std::vector<Vec<D>>& valpha,
                       bool constrained, bool record);
+  /// Does the gather read the old grid velocities v_I^n (FLIP's increment v^{n+1} - v^n)? PIC
+  /// and APIC gather v^{n+1} alone.
+  [[nodiscard]] bool flip_increment() const {
+    return scene_.transfer != Transfer::apic && scene_.flip_blend > 0.0;
+  }
+  /// Does the scatter add dt f_I to the momentum (MLS-MPM, where nothing reads v_I^n)?
+  [[nodiscard]] bool force_in_momentum() const {
+    return scene_.update == UpdateScheme::mls && !flip_increment();
+  }
   /// Does the layer own a particle it holds (Blending), or only enhance it (Enhanced)?
   [[nodiscard]] bool owned_by_layer(std::size_t p) const {
     return particles.layer_wall[p] >= 0 && !dual_[particles.layer_wall[p]].enhanced;
