@@ -331,8 +331,7 @@ template <int D>
 template <class Shape>
 void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const double (&v)[D],
                                    const double (&C)[D][D], const double (*body_force)[D],
-                                   const double (*stress)[D][D], bool mls, bool fold,
-                                   double dt) {
+                                   const double (*stress)[D][D], bool mls, bool fold, double dt) {
   static_assert(D == 3);
   constexpr int S = Shape::support;
   const auto& w = st.w;
