@@ -9,6 +9,7 @@
 //   BM_StandardStepSparse3D/N : BM_StandardStep3D on the sparse grid layout (grid "storage")
 //   BM_FloorStep3D/N/m   : floor_scene(N, m) (bench/perf_scenes.hpp): a block resting on a floor,
 //                          10% of its particles within h of it; m the wall method
+//   BM_FloorStepMLS3D/N/m : the same under MLS-MPM
 //
 // BM_StandardStep3D also reports bytes_per_particle: the heap the solver holds after its first
 // step (particles and step scratch; glibc's count of bytes in use, from before the solver is
@@ -67,9 +68,9 @@ BENCHMARK(BM_StandardStepMLS3D)->Arg(32)->Unit(benchmark::kMillisecond)->UseReal
 void BM_StandardStepSparse3D(benchmark::State& state) { standard_step(state, "musl", "sparse"); }
 BENCHMARK(BM_StandardStepSparse3D)->Arg(32)->Unit(benchmark::kMillisecond)->UseRealTime();
 
-void BM_FloorStep3D(benchmark::State& state) {
+void floor_step(benchmark::State& state, const char* update) {
   const mpm::Scene scene =
-      floor_scene(static_cast<int>(state.range(0)), static_cast<int>(state.range(1)));
+      floor_scene(static_cast<int>(state.range(0)), static_cast<int>(state.range(1)), update);
   mpm::Solver<3> solver(scene);
   const double dt = solver.stable_dt(0.3);
   for (int k = 0; k < 5; ++k) solver.step(dt);  // settle onto the floor
@@ -106,7 +107,13 @@ void BM_FloorStep3D(benchmark::State& state) {
   state.counters["in_layer"] =
       static_cast<double>(in_layer) / static_cast<double>(solver.particle_count());
 }
+void BM_FloorStep3D(benchmark::State& state) { floor_step(state, "musl"); }
 BENCHMARK(BM_FloorStep3D)
+    ->ArgsProduct({{32}, {0, 1, 2, 3, 4}})
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
+void BM_FloorStepMLS3D(benchmark::State& state) { floor_step(state, "mls"); }
+BENCHMARK(BM_FloorStepMLS3D)
     ->ArgsProduct({{32}, {0, 1, 2, 3, 4}})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
