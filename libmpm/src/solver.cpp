@@ -361,8 +361,10 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
     for (int b = 0; b < 3; ++b) mc[a][b] = m * C[a][b];
   }
   // With `fold` (MLS), dt f_I = dt N (m b - V sigma D^-1 (x_I - x_p)) has the momentum's form: it
-  // joins the particle's m v and m C once, and the rows below add nothing for it.
-  fold = fold && body_force != nullptr;
+  // joins the particle's m v and m C once, and the rows add nothing for it. (The grad N force
+  // folded the same way needs a third term in each momentum row: no faster than its own row,
+  // docs/performance.md.)
+  fold = fold && mls && body_force != nullptr;
   if (fold) {
     for (int a = 0; a < 3; ++a) {
       mv[a] += dt * (*body_force)[a];
@@ -370,6 +372,11 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
     }
   }
   const int(&k_offset)[S] = st.offset[2];
+  // A row's term: node k's component a takes x[a] u[3k + a].
+  struct Term {
+    const double* x;
+    const double* u;
+  };
   // The arrays with the layout fixed at compile time: a blocked index costs a shift, a mask
   // and a multiply by a constant, where the plain array's costs none.
   auto rows = [&](auto contiguous, auto array_of) {
@@ -377,25 +384,18 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
     const auto mass = array_of(grid.mass);
     const auto momentum = array_of(grid.momentum);
     const auto force = array_of(grid.force);
-    // array[row + k_offset[k]][a] += x_a u[3k + a] + y_a z[3k + a] over the row's S nodes (x, y
-    // repeated per node so that the update is one vector expression when the row is contiguous).
-    auto add_row = [&](const auto& array, int row, const double(&x)[3], const double* u,
-                       const double(&y)[3], const double* z) {
-      double xr[R], yr[R];
-      for (int c = 0; c < R; ++c) {
-        xr[c] = x[c % 3];
-        yr[c] = y[c % 3];
-      }
+    // array[row + k_offset[k]][a] += the terms' sum over the row's S nodes (x repeated per node
+    // so that the update is one vector expression when the row is contiguous).
+    auto add_row = [&](const auto& array, int row, const auto&... terms) {
+      double sum[R];
+      for (int c = 0; c < R; ++c) sum[c] = ((terms.x[c % 3] * terms.u[c]) + ...);
       if constexpr (kContiguous) {
         double* out = array[static_cast<std::size_t>(row + k_offset[0])].data();
-        for (int c = 0; c < R; ++c) out[c] += xr[c] * u[c] + yr[c] * z[c];
+        for (int c = 0; c < R; ++c) out[c] += sum[c];
       } else {
         for (int k = 0; k < S; ++k) {
           double* out = array[static_cast<std::size_t>(row + k_offset[k])].data();
-          for (int a = 0; a < 3; ++a) {
-            const int c = 3 * k + a;
-            out[a] += xr[c] * u[c] + yr[c] * z[c];
-          }
+          for (int a = 0; a < 3; ++a) out[a] += sum[3 * k + a];
         }
       }
     };
@@ -408,7 +408,7 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
           p[a] = wij * (mv[a] + mc[a][0] * dx[0][i] + mc[a][1] * dx[1][j]);
           q[a] = wij * mc[a][2];
         }
-        add_row(momentum, row, p, w2, q, wx2);
+        add_row(momentum, row, Term{p, w2}, Term{q, wx2});
         if (body_force == nullptr) continue;
         if (!fold) {
           const auto& mb = *body_force;
@@ -418,14 +418,12 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
             r[a] = wij * mb[a] + vs[a][0] * g[0][i] * w[1][j] + vs[a][1] * w[0][i] * g[1][j];
             t[a] = wij * vs[a][2];
           }
-          add_row(force, row, r, w2, t, dw2);
+          add_row(force, row, Term{r, w2}, Term{t, dw2});
         }
-        {
-          const double wm = wij * m;
-          for (int k = 0; k < S; ++k) {
-            const int node = kContiguous ? row + k_offset[0] + k : row + k_offset[k];
-            mass[static_cast<std::size_t>(node)] += wm * w[2][k];
-          }
+        const double wm = wij * m;
+        for (int k = 0; k < S; ++k) {
+          const int node = kContiguous ? row + k_offset[0] + k : row + k_offset[k];
+          mass[static_cast<std::size_t>(node)] += wm * w[2][k];
         }
       }
     }
