@@ -339,7 +339,7 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   const auto& dx = st.dx;
   // Along the last axis a row's S nodes are adjacent in memory (always in the dense layout; in
   // the sparse one unless the row crosses a block): their D S momentum (force) components are
-  // then updated as one vector, with the per-node weights repeated per component.
+  // then updated as one vector.
   static_assert(sizeof(Vec<3>) == 3 * sizeof(double), "grid vectors must be packed");
   static constexpr int R = 3 * S;  // static: the lambda below uses it without a capture
   // The force's weights per axis: grad N = (g_0 w_1 w_2, w_0 g_1 w_2, w_0 w_1 g_2) with g = dw;
@@ -348,12 +348,6 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   double g[3][S];
   for (int a = 0; a < 3; ++a) {
     for (int k = 0; k < S; ++k) g[a][k] = mls ? w[a][k] * dx[a][k] : dw[a][k];
-  }
-  double w2[R], wx2[R], dw2[R];
-  for (int c = 0; c < R; ++c) {
-    w2[c] = w[2][c / 3];
-    wx2[c] = w[2][c / 3] * dx[2][c / 3];
-    dw2[c] = g[2][c / 3];
   }
   double mv[3], mc[3][3];
   for (int a = 0; a < 3; ++a) {
@@ -371,10 +365,32 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
       for (int b = 0; b < 3; ++b) mc[a][b] += dt * (*stress)[a][b];
     }
   }
+  const bool separate_force = body_force != nullptr && !fold;
+  // A row's values (node k, component a at 3k + a) are the sums of a few per-particle vectors
+  // scaled by the row's weights, formed here once per particle with the last axis's weights in
+  // them (per row, the scalings alone: no per-row coefficients to spread over the components):
+  //   momentum (i, j) = w_0i w_1j (P + dx_0i U + dx_1j V),
+  //     P = w_2k (m v + m C_2 dx_2k), U = w_2k m C_0, V = w_2k m C_1 (C_b: column b of C);
+  //   force (i, j) = w_0i w_1j F + g_0i w_1j G + w_0i g_1j H,
+  //     F = w_2k m b + g_2k s_2, G = w_2k s_0, H = w_2k s_1 (s_b: column b of -V sigma).
+  double P[R], U[R], V[R], F[R], G[R], H[R];
+  for (int c = 0; c < R; ++c) {
+    const int a = c % 3, k = c / 3;
+    const double wk = w[2][k];
+    P[c] = wk * (mv[a] + mc[a][2] * dx[2][k]);
+    U[c] = wk * mc[a][0];
+    V[c] = wk * mc[a][1];
+    if (separate_force) {
+      const auto& vs = *stress;
+      F[c] = wk * (*body_force)[a] + g[2][k] * vs[a][2];
+      G[c] = wk * vs[a][0];
+      H[c] = wk * vs[a][1];
+    }
+  }
   const int(&k_offset)[S] = st.offset[2];
-  // A row's term: node k's component a takes x[a] u[3k + a].
+  // A row's term: node k's component a takes s u[3k + a].
   struct Term {
-    const double* x;
+    double s;
     const double* u;
   };
   // The arrays with the layout fixed at compile time: a blocked index costs a shift, a mask
@@ -384,11 +400,11 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
     const auto mass = array_of(grid.mass);
     const auto momentum = array_of(grid.momentum);
     const auto force = array_of(grid.force);
-    // array[row + k_offset[k]][a] += the terms' sum over the row's S nodes (x repeated per node
-    // so that the update is one vector expression when the row is contiguous).
+    // array[row + k_offset[k]][a] += the terms' sum over the row's S nodes (one vector
+    // expression when the row is contiguous).
     auto add_row = [&](const auto& array, int row, const auto&... terms) {
       double sum[R];
-      for (int c = 0; c < R; ++c) sum[c] = ((terms.x[c % 3] * terms.u[c]) + ...);
+      for (int c = 0; c < R; ++c) sum[c] = ((terms.s * terms.u[c]) + ...);
       if constexpr (kContiguous) {
         double* out = array[static_cast<std::size_t>(row + k_offset[0])].data();
         for (int c = 0; c < R; ++c) out[c] += sum[c];
@@ -403,22 +419,10 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
       for (int j = 0; j < S; ++j) {
         const double wij = w[0][i] * w[1][j];
         const int row = st.offset[0][i] + st.offset[1][j];
-        double p[3], q[3];  // momentum = p w_k + q w_k dx_k
-        for (int a = 0; a < 3; ++a) {
-          p[a] = wij * (mv[a] + mc[a][0] * dx[0][i] + mc[a][1] * dx[1][j]);
-          q[a] = wij * mc[a][2];
-        }
-        add_row(momentum, row, Term{p, w2}, Term{q, wx2});
+        add_row(momentum, row, Term{wij, P}, Term{wij * dx[0][i], U}, Term{wij * dx[1][j], V});
         if (body_force == nullptr) continue;
-        if (!fold) {
-          const auto& mb = *body_force;
-          const auto& vs = *stress;
-          double r[3], t[3];  // force = r w_k + t dw_k
-          for (int a = 0; a < 3; ++a) {
-            r[a] = wij * mb[a] + vs[a][0] * g[0][i] * w[1][j] + vs[a][1] * w[0][i] * g[1][j];
-            t[a] = wij * vs[a][2];
-          }
-          add_row(force, row, Term{r, w2}, Term{t, dw2});
+        if (separate_force) {
+          add_row(force, row, Term{wij, F}, Term{g[0][i] * w[1][j], G}, Term{w[0][i] * g[1][j], H});
         }
         const double wm = wij * m;
         for (int k = 0; k < S; ++k) {
