@@ -322,9 +322,9 @@ void Solver<D>::bin_particles_into_slabs() {
   });
 }
 
-// One particle's share of the 3D grid, the sums factorised along the axes (as in
-// sample_grid_factorised(): N = w_i w_j w_k, so the terms that do not depend on k are formed once
-// per row of S nodes): momentum N m (v + C (x_I - x_p)) and, with `body_force` (m b) and
+// One particle's share of the 3D grid, the sums factorised along the axes (N = w_i w_j w_k: the
+// terms along the last axis are formed once per particle, a row of S nodes scales them):
+// momentum N m (v + C (x_I - x_p)) and, with `body_force` (m b) and
 // `stress` (-V sigma), mass N m and force N m b - V sigma grad N. With `mls` the force is
 // MLS-MPM's, and with `fold` it goes into the momentum as dt f (see scatter()).
 template <int D>
@@ -356,7 +356,7 @@ void Solver<D>::scatter_factorised(const Stencil<D, Shape>& st, double m, const 
   }
   // With `fold` (MLS), dt f_I = dt N (m b - V sigma D^-1 (x_I - x_p)) has the momentum's form: it
   // joins the particle's m v and m C once, and the rows add nothing for it. (The grad N force
-  // folded the same way needs a third term in each momentum row: no faster than its own row,
+  // folded into the momentum rows as three more terms saved about 1% of a step: not done,
   // docs/performance.md.)
   fold = fold && mls && body_force != nullptr;
   if (fold) {
