@@ -14,7 +14,7 @@
 // BM_StandardStep3D also reports bytes_per_particle: the heap the solver holds after its first
 // step (particles and step scratch; glibc's count of bytes in use, from before the solver is
 // made) plus the pages the grid's node arrays hold, per particle (issue 9's target: 400 in 3D).
-// The standard steps report milliseconds per step in each phase (ms_p2g, ms_g2p, ...).
+// Every benchmark reports milliseconds per step in each phase (ms_p2g, ms_g2p, ...).
 
 #include <benchmark/benchmark.h>
 
@@ -26,6 +26,22 @@ namespace {
 using mpm::perf::block_scene;
 using mpm::perf::floor_scene;
 using mpm::perf::heap_bytes;
+
+// Milliseconds per step in each phase between `before` and now, over the state's iterations
+// (where the time goes: the transfers, the dual-grid overhead).
+void phase_counters(benchmark::State& state, const mpm::Solver<3>& solver,
+                    const mpm::PhaseTimes& before) {
+  const mpm::PhaseTimes ms =
+      mpm::perf::ms_per_step(solver.phase_times(), before, static_cast<double>(state.iterations()));
+  state.counters["ms_locate"] = ms.locate;
+  state.counters["ms_p2g"] = ms.particles_to_grid;
+  state.counters["ms_grid"] = ms.grid_update;
+  state.counters["ms_walls"] = ms.walls;
+  state.counters["ms_coupling"] = ms.coupling;
+  state.counters["ms_g2p"] = ms.grid_to_particles;
+  state.counters["ms_stress"] = ms.stress;
+  state.counters["ms_advect"] = ms.advect;
+}
 
 void standard_step(benchmark::State& state, const char* update, const char* storage = "auto") {
   const mpm::Scene scene = block_scene(static_cast<int>(state.range(0)), update, storage);
@@ -39,14 +55,7 @@ void standard_step(benchmark::State& state, const char* update, const char* stor
   for (auto _ : state) solver.step(dt);
   state.SetItemsProcessed(static_cast<int64_t>(state.iterations()) *
                           static_cast<int64_t>(solver.particle_count()));
-  // Milliseconds per step in each phase (where the transfers' time goes).
-  const mpm::PhaseTimes ms = mpm::perf::ms_per_step(solver.phase_times(), before_steps,
-                                                    static_cast<double>(state.iterations()));
-  state.counters["ms_p2g"] = ms.particles_to_grid;
-  state.counters["ms_grid"] = ms.grid_update;
-  state.counters["ms_g2p"] = ms.grid_to_particles;
-  state.counters["ms_stress"] = ms.stress;
-  state.counters["ms_advect"] = ms.advect;
+  phase_counters(state, solver, before_steps);
   state.counters["particles"] = static_cast<double>(solver.particle_count());
   state.counters["bytes_per_particle"] = grown / static_cast<double>(solver.particle_count());
 }
@@ -79,16 +88,8 @@ void floor_step(benchmark::State& state, const char* update) {
   const mpm::perf::SolveCount solves0 = mpm::perf::solve_count(solver);
   const mpm::PhaseTimes before = solver.phase_times();
   for (auto _ : state) solver.step(dt);
-  // Milliseconds per step in each phase (where the dual-grid overhead goes).
   const auto steps = static_cast<double>(state.iterations());
-  const mpm::PhaseTimes ms = mpm::perf::ms_per_step(solver.phase_times(), before, steps);
-  state.counters["ms_locate"] = ms.locate;
-  state.counters["ms_p2g"] = ms.particles_to_grid;
-  state.counters["ms_grid"] = ms.grid_update;
-  state.counters["ms_walls"] = ms.walls;
-  state.counters["ms_coupling"] = ms.coupling;
-  state.counters["ms_g2p"] = ms.grid_to_particles;
-  state.counters["ms_stress"] = ms.stress;
+  phase_counters(state, solver, before);
   std::size_t in_layer = 0;
   for (const auto& w : solver.dual_walls()) in_layer += w.layer_particles;
   state.SetItemsProcessed(static_cast<int64_t>(state.iterations()) *

@@ -645,12 +645,11 @@ std::vector<Check> self_weight_column(const json& p, const std::string& method, 
 std::vector<Check> two_disks(const json& p, const std::string& method, int k) {
   const double h = param(p, "spacing") / k, v = param(p, "speed");
   std::vector<Check> out;
-  for (const auto& [listed, listed_scheme] : p.at("schemes").items()) {
+  for (const auto& [listed, scheme] : p.at("schemes").items()) {
     // Under --update (run_scene_doc() replaces the scheme's update) the label says so ("MUSL/APIC"
     // -> "MLS/APIC"); MLS-MPM runs APIC only, so the FLIP disks are left out under it (here,
     // not by run_scene_doc()'s NotApplicable, which would drop the APIC disks with them).
     std::string label = listed;
-    const json& scheme = listed_scheme;
     if (!g_update.empty()) {
       if (g_update == "mls" && scheme.value("transfer", "apic") != "apic") continue;
       std::string name = g_update;

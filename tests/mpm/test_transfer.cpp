@@ -257,8 +257,12 @@ template <int D>
 void check_mls_scatter() {
   auto doc = test::box_scene(D, "bspline2");
   doc["scheme"]["update"] = "mls";
+  Vec<D> g;
   doc["gravity"] = nlohmann::json::array();
-  for (int d = 0; d < D; ++d) doc["gravity"].push_back(d == D - 1 ? -9.81 : 2.0);
+  for (int d = 0; d < D; ++d) {
+    g[d] = d == D - 1 ? -9.81 : 2.0;
+    doc["gravity"].push_back(g[d]);
+  }
   Solver<D> s(test::parse(doc));
   randomize(s, 5);
   std::mt19937 rng(17);
@@ -274,8 +278,6 @@ void check_mls_scatter() {
   }
   const double dt = 1e-3;
   s.particles_to_grid(dt);
-  Vec<D> g;
-  for (int d = 0; d < D; ++d) g[d] = d == D - 1 ? -9.81 : 2.0;
   const double inv_d = BSpline2Shape::inverse_inertia(s.grid.inv_h);
   std::vector<Vec<D>> expected(s.grid.size(), Vec<D>::Zero()), force(s.grid.size(), Vec<D>::Zero());
   Vec<D> particle_momentum = Vec<D>::Zero(), weight = Vec<D>::Zero();
