@@ -239,6 +239,7 @@ std::vector<CouplingWork> Solver<D>::coupling_work() const {
     }
     c.factorizations = w.factorizations + w.enh.factorizations;
     c.refinement_passes = w.refinements + w.enh.refinements;
+    c.reshaped_steps = w.reshapes;
     c.active_set_passes = w.enh.active_set_passes;
     c.unsettled_steps = w.enh.unsettled_steps;
     c.kept_released = w.enh.kept_released;
@@ -981,14 +982,13 @@ void Solver<D>::layer_couple(bool remapped) {
           return x.row() == y.row() && x.col() == y.col() && x.value() == y.value();
         });
       };
-      if (!(w.grid_rows == w.kept_grid_rows && w.layer_rows == w.kept_layer_rows &&
-            same(ga, w.kept_grid_entries) && same(ba, w.kept_layer_entries))) {
+      const bool same_rows = w.grid_rows == w.kept_grid_rows && w.layer_rows == w.kept_layer_rows;
+      if (!same_rows) ++w.reshapes;
+      if (!(same_rows && same(ga, w.kept_grid_entries) && same(ba, w.kept_layer_entries))) {
         assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k, ga,
                           w.assembly_work);
         assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k, ba,
                           w.assembly_work);
-        w.coupling_structure =
-            pattern_hash(w.grid_active) * 1000003U + pattern_hash(w.boundary_active);
       }
       // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar) + shift I; every kept
       // row is above the coupling threshold, so its mass is positive. More multipliers than the
@@ -1008,18 +1008,25 @@ void Solver<D>::layer_couple(bool remapped) {
       add_weighted_column_squares(w.grid_active, w.inv_grid_mass, diagonal);
       if (mortar) add_weighted_column_squares(w.boundary_active, w.inv_layer_mass, diagonal);
       w.schur_shift = 1e-10 * diagonal.maxCoeff();
-      // While the active set keeps the coupling's pattern, the factorisation in hand (an earlier
-      // step's S) solves this step's by refinement, the residuals taken with the factors
+      // While the same multipliers are active, the factorisation in hand (an earlier step's S)
+      // preconditions conjugate gradients on this step's, the products taken with the factors
       // R^A, M_A (S itself is not formed): layer particles move little per step, so S changes
-      // little. A new pattern, or refinement that stalls, forms and factorises S.
-      // In a flow whose layer masses change fast (the debris scene: light nodes at the front
-      // weigh 1/m in S), refinement fails time after time, each failure costing passes before
-      // the factorisation it ends in: after a failure the next `refine_backoff` steps (1, 2, 4
-      // ... 64, reset by a success) factorise without trying.
-      const std::size_t structure = w.coupling_structure;
+      // little, and nodes that cross the coupling threshold (new rows of R^A, R^alpha, a new
+      // pattern of S) change it by a term of low rank, which CG removes in a few passes (it
+      // must be SPD: S always is). Other multipliers, or CG that runs out of passes, form and
+      // factorise S. In a flow whose layer masses change fast (the debris scene: light nodes at
+      // the front weigh 1/m in S) CG can fail time after time, each failure costing passes
+      // before the factorisation it ends in: a failure right after another (against a fresh
+      // factorisation) makes the next `refine_backoff` steps (1, 2, 4 ... 64, reset by a
+      // success) factorise without trying.
+      std::size_t structure = static_cast<std::size_t>(k);  // the active multipliers' hash
+      for (const int mu : w.active_multipliers) {
+        structure = structure * 1000003U + static_cast<std::size_t>(mu);
+      }
       const bool waiting = w.refine_wait > 0;
       if (waiting) --w.refine_wait;
-      w.schur_refine = w.schur_factored && structure == w.factored_structure && !waiting;
+      w.schur_refine =
+          w.schur_factored && structure == w.factored_structure && w.schur->rows() == k && !waiting;
       if (!w.schur_refine) {
         w.factored_structure = structure;
         if (!factorise_schur(w, mortar)) continue;
@@ -1060,10 +1067,10 @@ void Solver<D>::layer_couple(bool remapped) {
       };
       factor_solve(w.gap, w.lambda);
       if (w.schur_refine) {
-        // x += F^-1 (gap - S x) while refine() allows (to an error below 1e-10 of x, or a
-        // residual below 1e-10 of the interface terms);
-        // unconverged (the masses moved too far from the factorised step's), factorise this
-        // step's S. The products run through a and b, free by now.
+        // CG preconditioned by the factorisation in hand (conjugate_refine(): to an error below
+        // 1e-10 of x, or a residual below 1e-10 of the interface terms); unconverged (the
+        // masses moved too far from the factorised step's), factorise this step's S. The
+        // products run through a and b, free by now.
         auto apply = [&](const Block& x, Block& y) {
           a.noalias() = w.grid_active * x;
           a = w.inv_grid_mass.asDiagonal() * a;
@@ -1075,12 +1082,12 @@ void Solver<D>::layer_couple(bool remapped) {
           }
           y += w.schur_shift * x;
         };
-        if (refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual, w.update,
-                   scale)) {  // sparse_pattern.hpp
+        if (conjugate_refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
+                             w.update, w.search, w.search_product, scale)) {  // sparse_pattern.hpp
           w.refine_backoff = 0;
         } else {
-          w.refine_backoff = std::clamp(2 * w.refine_backoff, 1, 64);
           w.refine_wait = w.refine_backoff;
+          w.refine_backoff = std::clamp(2 * w.refine_backoff, 1, 64);
           if (!factorise_schur(w, mortar)) return;
           w.schur_refine = false;
           factor_solve(w.gap, w.lambda);

@@ -278,40 +278,41 @@ struct DualWall {
   /// The Schur complement S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha) + shift I on
   /// the active multipliers is kept as its factors (this step's inverse masses of the kept rows
   /// and the shift); `schur` holds a factorisation (held by pointer: Eigen's solvers cannot be
-  /// moved) of `schur_base`, which may be an earlier step's S with the same coupling pattern
-  /// (`factored_structure`): the masses change a little from step to step, so S is then solved
-  /// by refinement against it. A checkpoint saves `schur_base` and `factored_structure`. Only
-  /// its lower triangle is S (all the factorisation reads): factorise_schur() leaves out the
-  /// upper entries of its last columns.
+  /// moved) of `schur_base`, which may be an earlier step's S of the same active multipliers
+  /// (`factored_structure`, their hash): the masses change a little from step to step, so it
+  /// then preconditions conjugate gradients on S. A checkpoint saves `schur_base` and
+  /// `factored_structure`. Only its lower triangle is S (all the factorisation reads):
+  /// factorise_schur() leaves out the upper entries of its last columns.
   Eigen::VectorXd inv_grid_mass, inv_layer_mass;
   double schur_shift = 0.0;
   Eigen::SparseMatrix<double> schur_base;
   std::unique_ptr<SparseLdlt> schur = std::make_unique<SparseLdlt>();
   std::size_t pattern_hash = 0;        ///< sparsity of the last factorised S: reuse its ordering
-  std::size_t factored_structure = 0;  ///< patterns of R^A, R^alpha when `schur_base` was formed
+  std::size_t factored_structure = 0;  ///< active multipliers' hash when `schur_base` was formed
   bool schur_factored = false;         ///< `schur` holds a valid factorisation (maybe older)
   bool schur_refine = false;           ///< this step's S is solved by refinement
   /// After a refinement that failed, steps to factorise without trying (refine_wait), and how
-  /// many the next failure waits (doubled per failure up to 64, 0 after a success).
+  /// many the next failure waits (0 after a success, then 1, doubled per failure up to 64).
   int refine_wait = 0, refine_backoff = 0;
   std::size_t factorizations = 0;  ///< Schur factorisations so far (for benchmarks)
   std::size_t refinements = 0;     ///< refinement passes against an earlier factorisation
+  std::size_t reshapes = 0;        ///< steps whose kept rows changed (CouplingWork::reshaped_steps)
   /// Wall-clock seconds of the coupling's assembly (the active coupling and S, or Enhanced's
   /// blocks) and of its solves (refinement included), both without the factorisations made
   /// inside them, which the wall's solvers time themselves (SparseLdlt; CouplingWork).
   double assembly_seconds = 0.0, solve_seconds = 0.0;
-  /// The coupling's scratch, kept from step to step so that a step that does not factorise
-  /// allocates nothing (issue 9): the active coupling's entries, S's diagonal, and the solve's
-  /// blocks (one row per kept row or active multiplier, one column per component).
+  /// The coupling's scratch, kept from step to step so that a step that neither factorises nor
+  /// joins other nodes allocates nothing (issue 9): the active coupling's entries, S's diagonal,
+  /// and the solve's blocks (one row per kept row or active multiplier, one column per
+  /// component; `search` and `search_product` are conjugate_refine()'s).
   std::vector<Eigen::Triplet<double>> grid_entries, layer_entries;
   /// The step before's rows and entries (layer_couple() keeps R^A and R^alpha when this step's
-  /// are the same), and the hash of R^A's and R^alpha's patterns.
+  /// are the same).
   std::vector<int> kept_grid_rows, kept_layer_rows;
   std::vector<Eigen::Triplet<double>> kept_grid_entries, kept_layer_entries;
-  std::size_t coupling_structure = 0;
   std::vector<int> assembly_work;
   Eigen::VectorXd schur_diagonal;
-  NodeBlock<D> grid_block, layer_block, gap, lambda, residual, update;
+  NodeBlock<D> grid_block, layer_block, gap, lambda, residual, update, search, search_product;
   std::vector<double> solve_work;  ///< ldlt_solve()'s
   double min_cell_size = 0.0;      ///< for the CFL limit
   /// This step's layer particles by boundary node (layer_scatter(), which sums each node's terms

@@ -69,6 +69,10 @@ struct CouplingWork {
   std::size_t corner_nodes = 0;
   std::size_t factorizations = 0;
   std::size_t refinement_passes = 0;
+  /// Blending: steps in which the nodes the Phi coupling joins changed (nodes crossing the
+  /// coupling threshold): its matrices took a new shape, solved against the factorisation in
+  /// hand when the same multipliers are active.
+  std::size_t reshaped_steps = 0;
   /// Enhanced: the contact active set's passes, the steps it had not settled after 30 (their
   /// last pass's states stand), and the re-additions refused to a multiplier released twice in
   /// a step (its gap closing again: the loop would alternate; docs/enhanced.md).
