@@ -304,8 +304,8 @@ TEST(SparseSolve, ConjugateRefinementSolvesWhereRefinementGivesUp) {
   const Eigen::SparseMatrix<double> a = grid_spd(30);
   // The diagonal up by 3%: refinement contracts by q in [0.03, 0.09] a pass and would need up
   // to log(1e-10) / log(0.09) = 9.6 passes, more than it allows (6); it gives up. F^-1 m =
-  // I + 0.03 F^-1 diag(a) has its spectrum in [1.01, 1.09] (a's condition number <= 3), so CG
-  // contracts by at most (sqrt(1.08) - 1) / (sqrt(1.08) + 1) = 0.019 a pass: 1e-10 within 6.
+  // I + 0.03 F^-1 diag(a) has its spectrum in [1, 1.09], so CG contracts by at most
+  // (sqrt(1.09) - 1) / (sqrt(1.09) + 1) = 0.022 a pass: 1e-10 within 6 (5 passes here).
   const Eigen::SparseMatrix<double> m = moved(a, 0.03);
   const Block3 b = random_block(a.rows(), 29);
   Block3 x;
@@ -335,7 +335,7 @@ TEST(SparseSolve, ConjugateRefinementRemovesALowRankChangeInAsManyPasses) {
   // refinement diverges (q >= 9 along those rows), but F^-1 m is the identity plus a rank-3
   // term. The first residual, (F - m) F^-1 b, lies in the range of that term, and so does the
   // error: three eigenvalues, which CG removes in three steps in exact arithmetic; the fourth
-  // pass's solve with F finds the error gone (5 passes allowed for round-off).
+  // pass's solve with F finds the error gone (4 passes here; 5 allowed for round-off).
   const Eigen::SparseMatrix<double> a = grid_spd(30);
   Eigen::SparseMatrix<double> m = a;
   for (const int row : {17, 400, 811}) m.coeffRef(row, row) *= 10.0;
@@ -353,8 +353,9 @@ TEST(SparseSolve, ConjugateRefinementRemovesALowRankChangeInAsManyPasses) {
 
 TEST(SparseSolve, ConjugateRefinementGivesUpAndStopsAtASmallResidual) {
   const Eigen::SparseMatrix<double> a = grid_spd(30);
-  // The diagonal tripled: F^-1 m spans [1.7, 7], CG contracts by about 0.34 a pass and would
-  // need some 20 passes: it gives up within its 6 (the caller then factorises).
+  // The diagonal tripled: the first correction F^-1 r = F^-1 (F - m) x is 2 to 6 times x
+  // itself (F^-1 m spans [3, 7]), an error larger than the solution: CG gives up at once (the
+  // caller then factorises), within its 6 passes in any case.
   {
     const Block3 b = random_block(a.rows(), 37);
     Block3 x;
