@@ -300,34 +300,43 @@ bool conjugate_refine_against(const Eigen::SparseMatrix<double>& a,
   return conjugate_refine(b, x, product, factor, passes, residual, update, direction, image, scale);
 }
 
+/// m x = b against a factorisation of `a`: refine() gives up, conjugate_refine() converges within
+/// `max_passes` to 1e-10 of the exact solution (it stops when the preconditioned residual z, the
+/// error to within 1 +- q, falls below 1e-10 of x, and adds z: the error left is about q of
+/// that).
+void expect_conjugate_solves_alone(const Eigen::SparseMatrix<double>& a,
+                                   const Eigen::SparseMatrix<double>& m, const Block3& b,
+                                   std::size_t max_passes) {
+  Block3 x;
+  std::size_t passes = 0;
+  EXPECT_FALSE(refine_against(a, m, b, x, passes, 0.0));
+  passes = 0;
+  ASSERT_TRUE(conjugate_refine_against(a, m, b, x, passes, 0.0));
+  EXPECT_LE(passes, max_passes);
+  const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> exact(m);
+  const Block3 reference = exact.solve(b);
+  EXPECT_LE((x - reference).norm(), 1e-10 * reference.norm());
+}
+
 TEST(SparseSolve, ConjugateRefinementSolvesWhereRefinementGivesUp) {
   const Eigen::SparseMatrix<double> a = grid_spd(30);
   // The diagonal up by 3%: refinement contracts by q in [0.03, 0.09] a pass and would need up
   // to log(1e-10) / log(0.09) = 9.6 passes, more than it allows (6); it gives up. F^-1 m =
   // I + 0.03 F^-1 diag(a) has its spectrum in [1, 1.09], so CG contracts by at most
   // (sqrt(1.09) - 1) / (sqrt(1.09) + 1) = 0.022 a pass: 1e-10 within 6 (5 passes here).
-  const Eigen::SparseMatrix<double> m = moved(a, 0.03);
   const Block3 b = random_block(a.rows(), 29);
-  Block3 x;
-  std::size_t passes = 0;
-  EXPECT_FALSE(refine_against(a, m, b, x, passes, 0.0));
-  passes = 0;
-  ASSERT_TRUE(conjugate_refine_against(a, m, b, x, passes, 0.0));
-  EXPECT_LE(passes, 6U);
-  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> exact(m);
-  const Block3 reference = exact.solve(b);
-  // Stopped when the preconditioned residual z (the error to within 1 +- 0.09) fell below
-  // 1e-10 of x, and z added: the error left is about 0.09 of that.
-  EXPECT_LE((x - reference).norm(), 1e-10 * reference.norm());
+  expect_conjugate_solves_alone(a, moved(a, 0.03), b, 6U);
   // The change 0.002, which refinement handles in 3 passes: at most one more (refine() stops
   // one pass early on its estimate of the error left from its contraction rate; CG's passes do
   // not contract at a steady rate, and it stops when F^-1 r itself is small).
   const Eigen::SparseMatrix<double> near = moved(a, 0.002);
   std::size_t refined = 0, conjugate = 0;
+  Block3 x;
   ASSERT_TRUE(refine_against(a, near, b, x, refined, 0.0));
   ASSERT_TRUE(conjugate_refine_against(a, near, b, x, conjugate, 0.0));
   EXPECT_LE(conjugate, refined + 1);
-  EXPECT_LE((x - Block3(exact.compute(near).solve(b))).norm(), 1e-10 * x.norm());
+  const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> exact(near);
+  EXPECT_LE((x - Block3(exact.solve(b))).norm(), 1e-10 * x.norm());
 }
 
 TEST(SparseSolve, ConjugateRefinementRemovesALowRankChangeInAsManyPasses) {
@@ -339,16 +348,7 @@ TEST(SparseSolve, ConjugateRefinementRemovesALowRankChangeInAsManyPasses) {
   const Eigen::SparseMatrix<double> a = grid_spd(30);
   Eigen::SparseMatrix<double> m = a;
   for (const int row : {17, 400, 811}) m.coeffRef(row, row) *= 10.0;
-  const Block3 b = random_block(a.rows(), 31);
-  Block3 x;
-  std::size_t passes = 0;
-  EXPECT_FALSE(refine_against(a, m, b, x, passes, 0.0));
-  passes = 0;
-  ASSERT_TRUE(conjugate_refine_against(a, m, b, x, passes, 0.0));
-  EXPECT_LE(passes, 5U);
-  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> exact(m);
-  const Block3 reference = exact.solve(b);
-  EXPECT_LE((x - reference).norm(), 1e-10 * reference.norm());
+  expect_conjugate_solves_alone(a, m, random_block(a.rows(), 31), 5U);
 }
 
 TEST(SparseSolve, ConjugateRefinementGivesUpAndStopsAtASmallResidual) {
