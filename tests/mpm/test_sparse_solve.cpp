@@ -204,18 +204,30 @@ Eigen::SparseMatrix<double> moved(const Eigen::SparseMatrix<double>& a, double c
 
 using Block3 = Eigen::Matrix<double, Eigen::Dynamic, 3>;
 
-/// refine() of m x = b against a factorisation of `a`, from x = F^-1 b (as the couplings start);
-/// `passes` counts the refinement passes.
+/// refine() (or, when `conjugate`, conjugate_refine()) of m x = b against a factorisation of
+/// `a`, from x = F^-1 b (as the couplings start); `passes` counts the passes.
 bool refine_against(const Eigen::SparseMatrix<double>& a, const Eigen::SparseMatrix<double>& m,
-                    const Block3& b, Block3& x, std::size_t& passes, double scale) {
+                    const Block3& b, Block3& x, std::size_t& passes, double scale,
+                    bool conjugate = false) {
   SparseLdlt solver;
   solver.compute(a);
   std::vector<double> work;
   const auto factor = [&](const Block3& r, Block3& out) { ldlt_solve(solver, r, out, work); };
   const auto product = [&](const Block3& y, Block3& out) { out.noalias() = m * y; };
   factor(b, x);
-  Block3 residual, update;
+  Block3 residual, update, direction, image;
+  if (conjugate) {
+    return conjugate_refine(b, x, product, factor, passes, residual, update, direction, image,
+                            scale);
+  }
   return refine(b, x, product, factor, passes, residual, update, scale);
+}
+
+/// refine_against() by conjugate gradients.
+bool conjugate_refine_against(const Eigen::SparseMatrix<double>& a,
+                              const Eigen::SparseMatrix<double>& m, const Block3& b, Block3& x,
+                              std::size_t& passes, double scale) {
+  return refine_against(a, m, b, x, passes, scale, true);
 }
 
 Block3 random_block(Eigen::Index rows, unsigned seed) {
@@ -283,21 +295,6 @@ TEST(SparseSolve, RefinementGivesUpAgainstAFactorisationTooFarAway) {
   std::size_t passes = 0;
   EXPECT_FALSE(refine_against(a, m, b, x, passes, 0.0));
   EXPECT_LE(passes, 2U);
-}
-
-/// conjugate_refine() of m x = b against a factorisation of `a`, from x = F^-1 b (as the Phi
-/// coupling starts).
-bool conjugate_refine_against(const Eigen::SparseMatrix<double>& a,
-                              const Eigen::SparseMatrix<double>& m, const Block3& b, Block3& x,
-                              std::size_t& passes, double scale) {
-  SparseLdlt solver;
-  solver.compute(a);
-  std::vector<double> work;
-  const auto factor = [&](const Block3& r, Block3& out) { ldlt_solve(solver, r, out, work); };
-  const auto product = [&](const Block3& y, Block3& out) { out.noalias() = m * y; };
-  factor(b, x);
-  Block3 residual, update, direction, image;
-  return conjugate_refine(b, x, product, factor, passes, residual, update, direction, image, scale);
 }
 
 /// m x = b against a factorisation of `a`: refine() gives up, conjugate_refine() converges within
