@@ -10,17 +10,23 @@
 #include <utility>
 #include <vector>
 
+#include <unistd.h>
+
 #include "mpmgeom/triangle_mesh.hpp"
 
 namespace mpm::test {
 
 /// Writes the floor plane z = level, two triangles over [lo, hi]^2 with normals up (one part,
 /// "floor"), to an OBJ file in the temporary directory named after `name` and the level;
-/// returns its path.
+/// returns its path. Written under a name of this process's and then renamed into place, so
+/// that another process writing the same file (two `mpm bench perf` tests run side by side
+/// under `ctest -j2`) never lets a reader see it half written: each sees one whole copy.
 inline std::filesystem::path floor_plane_file(const std::string& name, double level, double lo,
                                               double hi) {
-  const auto file =
-      std::filesystem::temp_directory_path() / (name + "_floor_" + std::to_string(level) + ".obj");
+  const std::string stem = name + "_floor_" + std::to_string(level);
+  const auto file = std::filesystem::temp_directory_path() / (stem + ".obj");
+  const auto partial =
+      std::filesystem::temp_directory_path() / (stem + "." + std::to_string(::getpid()) + ".obj");
   mpmgeom::TriangleMesh mesh;
   mesh.V.resize(4, 3);
   mesh.V << lo, lo, level, hi, lo, level, hi, hi, level, lo, hi, level;
@@ -28,7 +34,8 @@ inline std::filesystem::path floor_plane_file(const std::string& name, double le
   mesh.F << 0, 1, 2, 0, 2, 3;
   mesh.part = Eigen::VectorXi::Zero(2);
   mesh.part_names = {"floor"};
-  mpmgeom::save_mesh(mesh, file);
+  mpmgeom::save_mesh(mesh, partial);
+  std::filesystem::rename(partial, file);  // atomic within one file system
   return file;
 }
 
