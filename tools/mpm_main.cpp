@@ -1,6 +1,5 @@
 // `mpm`: one command, one subcommand per job. Parse, call the library, report.
 
-#include <exception>
 #include <iostream>
 #include <string>
 #include <utility>
@@ -215,12 +214,7 @@ int main(int argc, char** argv) {
     }
     if (bench_args.kind == "perf") {
       perf_args.smoke = bench_args.smoke;
-      try {
-        return mpm::tools::perf_command(perf_args);
-      } catch (const std::exception& e) {  // its scenes' files (the floor's mesh) unreadable
-        std::cerr << "mpm bench perf: " << e.what() << '\n';
-        return mpm::kExitIo;
-      }
+      return mpm::tools::perf_command(perf_args);
     }
     if (bench_args.config.empty()) {
       bench_args.config = std::filesystem::path(MPM_BENCH_DIR) / (bench_args.kind + ".json");

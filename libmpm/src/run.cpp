@@ -723,11 +723,12 @@ int run_scene(const Scene& scene, const RunOptions& options) {
                                      {"analysis", c.analysis_seconds},
                                      {"factorization", c.factorization_seconds},
                                      {"solves", c.solve_seconds}}}};
-    if (c.method != "enhanced") summary["coupling"][c.wall]["reshaped_steps"] = c.reshaped_steps;
     if (c.method == "enhanced") {
       summary["coupling"][c.wall]["active_set"] = {{"passes", c.active_set_passes},
                                                    {"unsettled_steps", c.unsettled_steps},
                                                    {"kept_released", c.kept_released}};
+    } else {
+      summary["coupling"][c.wall]["reshaped_steps"] = c.reshaped_steps;
     }
   }
   // The standard grid's memory: its node arrays are backed only where particles have been.

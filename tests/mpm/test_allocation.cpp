@@ -33,7 +33,7 @@ struct Count {
 
 /// The couplings' factorisations and steps that joined other nodes so far: a step that adds to
 /// either may allocate.
-std::size_t factorizations(const mpm::Simulation& sim) {
+std::size_t coupling_changes(const mpm::Simulation& sim) {
   std::size_t total = 0;
   for (const auto& w : sim.coupling_work()) total += w.factorizations + w.reshaped_steps;
   return total;
@@ -48,12 +48,12 @@ Count allocations_in_steps(const mpm::Scene& scene, int warmup = 20, int steps =
   for (int s = 0; s < warmup; ++s) solver.step(dt);
   Count count;
   for (int s = 0; s < steps; ++s) {
-    const std::size_t factorised = factorizations(solver);
+    const std::size_t changes = coupling_changes(solver);
     const std::size_t before = mpm::test::allocations();
     solver.step(dt);
     const std::size_t made = mpm::test::allocations() - before;
     EXPECT_FALSE(solver.fault().has_value()) << *solver.fault();
-    if (factorizations(solver) != factorised) {
+    if (coupling_changes(solver) != changes) {
       ++count.skipped;
       continue;
     }
