@@ -1062,8 +1062,12 @@ void Solver<D>::layer_couple(bool remapped) {
       // moving as a whole, or in a linear field both grids carry exactly): no impulse, no solve.
       if (w.gap.norm() <= kRefineTolerance * scale) return;
       // The D components side by side: each entry of the factor is read once for all of them.
+      // Against an earlier step's factor, which only preconditions CG, L in single precision
+      // (SparseLdlt); a factor of this step's S solves in full.
+      if (w.schur_refine) w.schur->round_to_single();
       auto factor_solve = [&](const Block& rhs, Block& x) {
-        ldlt_solve(*w.schur, rhs, x, w.solve_work);
+        ldlt_solve(*w.schur, rhs, x, w.solve_work,
+                   w.schur_refine ? LdltValues::single : LdltValues::full);
       };
       factor_solve(w.gap, w.lambda);
       if (w.schur_refine) {

@@ -299,9 +299,12 @@ inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::Vect
 /// backward solve sums each row in four partial sums, and a factor whose elimination tree
 /// splits (SubtreeSplit) has its two sides solved on two threads: the sums are grouped
 /// differently from Eigen's (round-off apart), the same for any thread count. At most 3
-/// columns. No allocation once `work` and x have held this size.
+/// columns. No allocation once `work` and x have held this size. With LdltValues::single the
+/// solve reads L's single-precision copy (after solver.round_to_single()): a preconditioner's
+/// solve, exact to about 1e-7.
 template <class Rhs>
-void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<double>& work) {
+void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<double>& work,
+                LdltValues values = LdltValues::full) {
   const Eigen::Index n = b.rows();
   const Eigen::Index cols = b.cols();
   const auto width = static_cast<std::size_t>(cols);
@@ -322,11 +325,14 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
   const auto& l = solver.matrixL().nestedExpression();
   const int* outer = l.outerIndexPtr();
   const int* inner = l.innerIndexPtr();
-  const double* value = l.valuePtr();
   const Eigen::VectorXd& d = solver.diagonal();
+  if (values == LdltValues::single && !solver.rounded()) {
+    throw std::logic_error("ldlt_solve: L not rounded to single precision since it was factorised");
+  }
   // Each row's values are held in locals while its column is applied, so that the compiler
   // need not reload them after every store through the aliasing row pointers.
-  auto apply_rows = [&](auto fixed) {
+  // `value`: L's values, double or float (the arithmetic is in double either way).
+  auto apply_rows = [&](auto fixed, const auto* value) {
     constexpr int C = decltype(fixed)::value;
     double* const rows = work.data();
     // Forward: column j's update of the rows below it; rows beyond `limit` go to `spill`
@@ -413,15 +419,22 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
       for (int i = count - 1; i >= 0; --i) backward(i);
     }
   };
+  auto apply_columns = [&](auto fixed) {
+    if (values == LdltValues::single) {
+      apply_rows(fixed, solver.single_values().data());
+    } else {
+      apply_rows(fixed, l.valuePtr());
+    }
+  };
   switch (cols) {
     case 1:
-      apply_rows(std::integral_constant<int, 1>{});
+      apply_columns(std::integral_constant<int, 1>{});
       break;
     case 2:
-      apply_rows(std::integral_constant<int, 2>{});
+      apply_columns(std::integral_constant<int, 2>{});
       break;
     case 3:
-      apply_rows(std::integral_constant<int, 3>{});
+      apply_columns(std::integral_constant<int, 3>{});
       break;
     default:
       throw std::logic_error("ldlt_solve: more than 3 right-hand sides");

@@ -48,16 +48,45 @@ struct SubtreeSplit {
 /// increasing in each column) for ldlt_solve() (SubtreeSplit).
 SubtreeSplit split_subtrees(const Eigen::SparseMatrix<double>& l);
 
+/// Which values of L a solve with a SparseLdlt reads (ldlt_solve(), sparse_pattern.hpp).
+enum class LdltValues {
+  full,   ///< L as factorised: the solve is exact to round-off
+  single  ///< L rounded to single precision (SparseLdlt::round_to_single()): a preconditioner
+};
+
 /// Eigen's sparse LDL^T, with read access to D (its vectorD() returns a copy: an allocation
 /// per solve in ldlt_solve(), sparse_pattern.hpp), and the split of its elimination tree for
 /// solves on two threads, made again after the first factorisation of each new pattern (the
 /// tree and L's structure depend on the pattern only).
+///
+/// A solve that only preconditions (conjugate gradients against an earlier step's factor,
+/// conjugate_refine()) may read L rounded to single precision: 8 bytes an entry with its row
+/// index instead of 12. The floor benchmark's S has 261,001 entries in L, 3.1 MB in double that
+/// stream from the shared cache at every pass and 2.1 MB in single, about what one core's
+/// second-level cache holds: the mortar floor's solves 14-17% faster, the same passes
+/// (docs/performance.md, 2026-12-06). Rounding L moves F^-1 S by about 1e-7 times S's
+/// condition number; CG's residual is formed in double, so it still stops at 1e-10, in the same
+/// passes wherever the factor's age moves F^-1 S more than that (the mortar floor: a first
+/// correction of 3e-4 of lambda), one more a solve where it ages less (the one-way floor, no
+/// slower for it).
 class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   using Base = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 
  public:
   [[nodiscard]] const Eigen::VectorXd& diagonal() const { return m_diag; }
   [[nodiscard]] const SubtreeSplit& split() const { return split_; }
+  /// L's values in single precision, in L's order, once round_to_single() has filled them
+  /// for the factorisation in hand (`rounded()`).
+  [[nodiscard]] const std::vector<float>& single_values() const { return single_; }
+  [[nodiscard]] bool rounded() const { return single_ready_; }
+  /// Rounds L's values to single precision for LdltValues::single solves, once per
+  /// factorisation (later calls return at once). Allocates only where factorize() grew L.
+  void round_to_single() {
+    if (single_ready_) return;
+    const auto& l = matrixL().nestedExpression();
+    std::copy(l.valuePtr(), l.valuePtr() + l.nonZeros(), single_.begin());
+    single_ready_ = true;
+  }
   void compute(const Eigen::SparseMatrix<double>& a) {
     analyzePattern(a);
     factorize(a);
@@ -75,6 +104,9 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
       split_ = split_subtrees(matrixL().nestedExpression());
       split_stale_ = false;
     }
+    // Sized here, in the step that factorises (a later step's rounding allocates nothing).
+    single_.resize(static_cast<std::size_t>(matrixL().nestedExpression().nonZeros()));
+    single_ready_ = false;
     numeric_seconds_ += since(start);
   }
   /// Wall-clock seconds spent so far in analyzePattern() (the fill-reducing ordering and the
@@ -87,7 +119,9 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   }
   SubtreeSplit split_;
+  std::vector<float> single_;
   bool split_stale_ = true;
+  bool single_ready_ = false;
   double analysis_seconds_ = 0.0, numeric_seconds_ = 0.0;
 };
 
