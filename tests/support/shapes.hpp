@@ -4,8 +4,10 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
 #include <map>
+#include <stdexcept>
 #include <string>
 #include <utility>
 #include <vector>
@@ -21,12 +23,22 @@ namespace mpm::test {
 /// returns its path. Written under a name of this process's and then renamed into place, so
 /// that another process writing the same file (two `mpm bench perf` tests run side by side
 /// under `ctest -j2`) never lets a reader see it half written: each sees one whole copy.
+/// A temporary directory that cannot be used (TMPDIR naming a file, or a path that does not
+/// exist) throws std::runtime_error naming it.
 inline std::filesystem::path floor_plane_file(const std::string& name, double level, double lo,
                                               double hi) {
+  std::filesystem::path directory;
+  try {
+    directory = std::filesystem::temp_directory_path();
+  } catch (const std::filesystem::filesystem_error& e) {
+    const char* tmpdir = std::getenv("TMPDIR");
+    throw std::runtime_error("no temporary directory to write the floor's mesh in (TMPDIR='" +
+                             std::string(tmpdir != nullptr ? tmpdir : "") +
+                             "': " + e.code().message() + ")");
+  }
   const std::string stem = name + "_floor_" + std::to_string(level);
-  const auto file = std::filesystem::temp_directory_path() / (stem + ".obj");
-  const auto partial =
-      std::filesystem::temp_directory_path() / (stem + "." + std::to_string(::getpid()) + ".obj");
+  const auto file = directory / (stem + ".obj");
+  const auto partial = directory / (stem + "." + std::to_string(::getpid()) + ".obj");
   mpmgeom::TriangleMesh mesh;
   mesh.V.resize(4, 3);
   mesh.V << lo, lo, level, hi, lo, level, hi, hi, level, lo, hi, level;

@@ -12,6 +12,7 @@
 #include <cerrno>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -631,6 +632,27 @@ TEST_F(CommandLine, BenchPerfRefusesOtherKindsOptionsAndAnUnwritableJson) {
   expect_one_line(run_mpm({"bench", "perf", "--json", unwritable.string()}), 4,
                   {unwritable.string()});
   EXPECT_FALSE(fs::exists(dir_ / "perf.csv"));
+}
+
+// The floor's mesh is written to the temporary directory; where there is none (TMPDIR names a
+// file), `mpm bench perf` stops with one line naming it and exit 4, as for any file of its scenes
+// it cannot write or read, rather than abort.
+TEST_F(CommandLine, BenchPerfReportsATemporaryDirectoryItCannotUse) {
+  const fs::path not_a_directory = dir_ / "tmp_is_a_file";
+  write_text(not_a_directory, "not a directory");
+  const char* previous = std::getenv("TMPDIR");
+  const std::string saved = previous != nullptr ? previous : "";
+  ::setenv("TMPDIR", not_a_directory.c_str(), 1);  // the child inherits it
+  const RunResult r = run_mpm({"bench", "perf", "--smoke"});
+  if (previous != nullptr) {
+    ::setenv("TMPDIR", saved.c_str(), 1);
+  } else {
+    ::unsetenv("TMPDIR");
+  }
+  EXPECT_EQ(r.exit_code, 4) << r.err;
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_TRUE(contains(r.err, "mpm bench perf")) << r.err;
+  EXPECT_TRUE(contains(r.err, not_a_directory.string())) << r.err;
 }
 
 // --yardstick-script runs the yardstick's script (../shared/tools/yardstick/run.sh) once per
