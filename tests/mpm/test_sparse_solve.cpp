@@ -210,7 +210,7 @@ using Block3 = Eigen::Matrix<double, Eigen::Dynamic, 3>;
 bool refine_against(const Eigen::SparseMatrix<double>& a, const Eigen::SparseMatrix<double>& m,
                     const Block3& b, Block3& x, std::size_t& passes, double scale,
                     bool conjugate = false, LdltValues values = LdltValues::full) {
-  SparseLdlt solver;
+  SparseLdlt solver(values);
   solver.compute(a);
   if (values == LdltValues::single) solver.round_to_single();
   std::vector<double> work;
@@ -380,7 +380,10 @@ TEST(SparseSolve, ConjugateRefinementGivesUpAndStopsAtASmallResidual) {
 TEST(SparseSolve, SinglePrecisionFactorPreconditionsAsWellAsTheFullOne) {
   const Eigen::SparseMatrix<double> a = grid_spd(30);
   const Block3 b = random_block(a.rows(), 43);
-  SparseLdlt solver;
+  SparseLdlt plain;  // keeps no single-precision copy
+  plain.compute(a);
+  EXPECT_THROW(plain.round_to_single(), std::logic_error);
+  SparseLdlt solver(LdltValues::single);
   solver.compute(a);
   std::vector<double> work;
   Block3 full, single;

@@ -8,6 +8,7 @@
 #include <array>
 #include <chrono>
 #include <memory>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -68,11 +69,16 @@ enum class LdltValues {
 /// condition number; CG's residual is formed in double, so it still stops at 1e-10, in the same
 /// passes wherever the factor's age moves F^-1 S more than that (the mortar floor: a first
 /// correction of 3e-4 of lambda), one more a solve where it ages less (the one-way floor, no
-/// slower for it).
+/// slower for it). Only a solver made with LdltValues::single keeps the copy (the Phi
+/// coupling's; Enhanced's, which refines by plain refinement, does not: its L has 1.33 M
+/// entries on the floor, and rounding cost refinement passes, docs/performance.md 2026-12-04).
 class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   using Base = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 
  public:
+  /// `kept`: LdltValues::single to keep L's single-precision copy as well.
+  explicit SparseLdlt(LdltValues kept = LdltValues::full)
+      : keeps_single_(kept == LdltValues::single) {}
   [[nodiscard]] const Eigen::VectorXd& diagonal() const { return m_diag; }
   [[nodiscard]] const SubtreeSplit& split() const { return split_; }
   /// L's values in single precision, in L's order, once round_to_single() has filled them
@@ -80,8 +86,9 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   [[nodiscard]] const std::vector<float>& single_values() const { return single_; }
   [[nodiscard]] bool rounded() const { return single_ready_; }
   /// Rounds L's values to single precision for LdltValues::single solves, once per
-  /// factorisation (later calls return at once). Allocates only where factorize() grew L.
+  /// factorisation (later calls return at once); no allocation (factorize() sized the copy).
   void round_to_single() {
+    if (!keeps_single_) throw std::logic_error("SparseLdlt: made without a single-precision L");
     if (single_ready_) return;
     const auto& l = matrixL().nestedExpression();
     std::copy(l.valuePtr(), l.valuePtr() + l.nonZeros(), single_.begin());
@@ -105,7 +112,9 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
       split_stale_ = false;
     }
     // Sized here, in the step that factorises (a later step's rounding allocates nothing).
-    single_.resize(static_cast<std::size_t>(matrixL().nestedExpression().nonZeros()));
+    if (keeps_single_) {
+      single_.resize(static_cast<std::size_t>(matrixL().nestedExpression().nonZeros()));
+    }
     single_ready_ = false;
     numeric_seconds_ += since(start);
   }
@@ -120,6 +129,7 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   }
   SubtreeSplit split_;
   std::vector<float> single_;
+  bool keeps_single_ = false;
   bool split_stale_ = true;
   bool single_ready_ = false;
   double analysis_seconds_ = 0.0, numeric_seconds_ = 0.0;
@@ -320,7 +330,7 @@ struct DualWall {
   Eigen::VectorXd inv_grid_mass, inv_layer_mass;
   double schur_shift = 0.0;
   Eigen::SparseMatrix<double> schur_base;
-  std::unique_ptr<SparseLdlt> schur = std::make_unique<SparseLdlt>();
+  std::unique_ptr<SparseLdlt> schur = std::make_unique<SparseLdlt>(LdltValues::single);
   std::size_t pattern_hash = 0;        ///< sparsity of the last factorised S: reuse its ordering
   std::size_t factored_structure = 0;  ///< active multipliers' hash when `schur_base` was formed
   bool schur_factored = false;         ///< `schur` holds a valid factorisation (maybe older)
