@@ -236,10 +236,6 @@ std::string fixed(double value, int digits = 2) {
   return text;
 }
 
-}  // namespace
-
-namespace {
-
 // perf_command() without its report of what its scenes throw.
 int timed_perf(const PerfArgs& args) {
   const int cells = args.smoke ? 6 : args.cells;
