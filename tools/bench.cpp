@@ -904,6 +904,9 @@ int bench_command(const BenchArgs& args) {
   } catch (const ConfigError& e) {
     std::cerr << "mpm bench: " << e.what() << "\n";
     return kExitBadInput;
+  } catch (const std::exception& e) {  // its files: the temporary directory, a CSV, a scene's
+    std::cerr << "mpm bench " << args.kind << ": " << e.what() << "\n";
+    return kExitIo;
   }
 }
 

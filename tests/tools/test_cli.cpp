@@ -634,21 +634,40 @@ TEST_F(CommandLine, BenchPerfRefusesOtherKindsOptionsAndAnUnwritableJson) {
   EXPECT_FALSE(fs::exists(dir_ / "perf.csv"));
 }
 
+/// run_mpm() with TMPDIR set to `tmpdir` for the child (it inherits this process's environment),
+/// TMPDIR restored afterwards.
+RunResult run_mpm_with_tmpdir(const fs::path& tmpdir, const std::vector<std::string>& args) {
+  const char* previous = std::getenv("TMPDIR");
+  const std::string saved = previous != nullptr ? previous : "";
+  ::setenv("TMPDIR", tmpdir.c_str(), 1);
+  const RunResult r = run_mpm(args);
+  if (previous != nullptr) {
+    ::setenv("TMPDIR", saved.c_str(), 1);
+  } else {
+    ::unsetenv("TMPDIR");
+  }
+  return r;
+}
+
+// `mpm bench stability` works in a folder of the temporary directory; where there is none it
+// stops with one line and exit 4. It used to abort: only configuration errors were caught.
+TEST_F(CommandLine, BenchStabilityReportsATemporaryDirectoryItCannotUse) {
+  const fs::path not_a_directory = dir_ / "tmp_is_a_file";
+  write_text(not_a_directory, "not a directory");
+  const RunResult r = run_mpm_with_tmpdir(not_a_directory, {"bench", "stability", "--smoke"});
+  EXPECT_EQ(r.exit_code, 4) << r.err;
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  EXPECT_TRUE(contains(r.err, "mpm bench stability")) << r.err;
+  EXPECT_TRUE(contains(r.err, "temp_directory_path")) << r.err;
+}
+
 // The floor's mesh is written to the temporary directory; where there is none (TMPDIR names a
 // file), `mpm bench perf` stops with one line naming it and exit 4, as for any file of its scenes
 // it cannot write or read, rather than abort.
 TEST_F(CommandLine, BenchPerfReportsATemporaryDirectoryItCannotUse) {
   const fs::path not_a_directory = dir_ / "tmp_is_a_file";
   write_text(not_a_directory, "not a directory");
-  const char* previous = std::getenv("TMPDIR");
-  const std::string saved = previous != nullptr ? previous : "";
-  ::setenv("TMPDIR", not_a_directory.c_str(), 1);  // the child inherits it
-  const RunResult r = run_mpm({"bench", "perf", "--smoke"});
-  if (previous != nullptr) {
-    ::setenv("TMPDIR", saved.c_str(), 1);
-  } else {
-    ::unsetenv("TMPDIR");
-  }
+  const RunResult r = run_mpm_with_tmpdir(not_a_directory, {"bench", "perf", "--smoke"});
   EXPECT_EQ(r.exit_code, 4) << r.err;
   EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
   EXPECT_TRUE(contains(r.err, "mpm bench perf")) << r.err;
