@@ -649,29 +649,21 @@ RunResult run_mpm_with_tmpdir(const fs::path& tmpdir, const std::vector<std::str
   return r;
 }
 
-// `mpm bench stability` works in a folder of the temporary directory; where there is none it
-// stops with one line and exit 4. It used to abort: only configuration errors were caught.
-TEST_F(CommandLine, BenchStabilityReportsATemporaryDirectoryItCannotUse) {
+// Where there is no temporary directory (TMPDIR names a file), `mpm bench` stops with one line
+// and exit 4 rather than abort: stability works in a folder of it (and aborted: only
+// configuration errors were caught), perf writes the floor's mesh there and names TMPDIR.
+TEST_F(CommandLine, BenchReportsATemporaryDirectoryItCannotUse) {
   const fs::path not_a_directory = dir_ / "tmp_is_a_file";
   write_text(not_a_directory, "not a directory");
-  const RunResult r = run_mpm_with_tmpdir(not_a_directory, {"bench", "stability", "--smoke"});
-  EXPECT_EQ(r.exit_code, 4) << r.err;
-  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
-  EXPECT_TRUE(contains(r.err, "mpm bench stability")) << r.err;
-  EXPECT_TRUE(contains(r.err, "temp_directory_path")) << r.err;
-}
-
-// The floor's mesh is written to the temporary directory; where there is none (TMPDIR names a
-// file), `mpm bench perf` stops with one line naming it and exit 4, as for any file of its scenes
-// it cannot write or read, rather than abort.
-TEST_F(CommandLine, BenchPerfReportsATemporaryDirectoryItCannotUse) {
-  const fs::path not_a_directory = dir_ / "tmp_is_a_file";
-  write_text(not_a_directory, "not a directory");
-  const RunResult r = run_mpm_with_tmpdir(not_a_directory, {"bench", "perf", "--smoke"});
-  EXPECT_EQ(r.exit_code, 4) << r.err;
-  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
-  EXPECT_TRUE(contains(r.err, "mpm bench perf")) << r.err;
-  EXPECT_TRUE(contains(r.err, not_a_directory.string())) << r.err;
+  for (const std::string kind : {"stability", "perf"}) {
+    SCOPED_TRACE(kind);
+    const RunResult r = run_mpm_with_tmpdir(not_a_directory, {"bench", kind, "--smoke"});
+    EXPECT_EQ(r.exit_code, 4) << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+    EXPECT_TRUE(contains(r.err, "mpm bench " + kind)) << r.err;
+    const std::string named = kind == "perf" ? not_a_directory.string() : "temp_directory_path";
+    EXPECT_TRUE(contains(r.err, named)) << r.err;
+  }
 }
 
 // --yardstick-script runs the yardstick's script (../shared/tools/yardstick/run.sh) once per
