@@ -42,6 +42,26 @@ AlphaBasis alpha_basis(int dimension, const Eigen::Vector3d& xi) {
   return b;
 }
 
+CellMap cell_map(const BoundaryGrid& grid, std::size_t c) {
+  CellMap map;
+  const int dim = grid.dimension;
+  const int m = dim - 1;  // coordinates along the wall; nodes 0..m on the wall side
+  map.dimension = dim;
+  const auto row = static_cast<Eigen::Index>(c);
+  auto node = [&](int k, int i) { return grid.nodes(grid.cells(row, k), i); };
+  for (int i = 0; i < dim; ++i) {
+    const double x0 = node(0, i);
+    const double d = node(m + 1, i) - x0;  // the node across from node 0
+    map.v[static_cast<std::size_t>(i)] = x0;
+    map.v[static_cast<std::size_t>(9 + i)] = d;
+    for (int j = 0; j < m; ++j) {
+      map.v[static_cast<std::size_t>(3 + 3 * j + i)] = node(j + 1, i) - x0;
+      map.v[static_cast<std::size_t>(12 + 3 * j + i)] = (node(m + 2 + j, i) - node(j + 1, i)) - d;
+    }
+  }
+  return map;
+}
+
 Eigen::Vector3d cell_point(const BoundaryGrid& grid, std::size_t c, const Eigen::Vector3d& xi) {
   const int dim = grid.dimension;
   const AlphaBasis b = alpha_basis(dim, xi);

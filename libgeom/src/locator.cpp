@@ -255,9 +255,8 @@ struct LayerLocator::Impl {
   std::vector<RTCBounds> bounds;                           // per cell, Embree frame
   std::vector<double> cell_size;                           // bounding-box diagonal per cell
   std::vector<double> coordinate_scale;                    // largest |x| over the cell's nodes
-  /// Node coordinates per cell, contiguous (node k, axis i at 3k + i; unused axes 0): Newton
-  /// reads them on every iteration.
-  std::vector<std::array<double, 18>> corners;
+  /// Each cell's map in closed form (boundary_grid.hpp), which Newton evaluates.
+  std::vector<CellMap> maps;
   EmbreeScene embree;
 
   struct Query {
@@ -315,7 +314,7 @@ LayerLocator::Impl::Impl(const BoundaryGrid& boundary) {
   bounds.resize(cells);
   cell_size.resize(cells);
   coordinate_scale.resize(cells);
-  corners.assign(cells, std::array<double, 18>{});
+  maps.resize(cells);
   for (std::size_t c = 0; c < cells; ++c) {
     // The basis is a convex combination on the reference cell, so the node box holds the cell.
     Eigen::Vector3d lo = Eigen::Vector3d::Zero(), hi = Eigen::Vector3d::Zero();  // unused: 0
@@ -327,12 +326,12 @@ LayerLocator::Impl::Impl(const BoundaryGrid& boundary) {
     for (int k = 0; k < nodes_per_cell; ++k) {
       const auto x = boundary.nodes.row(boundary.cells(static_cast<Eigen::Index>(c), k));
       for (int i = 0; i < dim; ++i) {
-        corners[c][3 * static_cast<std::size_t>(k) + static_cast<std::size_t>(i)] = x(i);
         lo[i] = std::min(lo[i], x(i) - frame_origin[i]);
         hi[i] = std::max(hi[i], x(i) - frame_origin[i]);
         scale = std::max(scale, std::abs(x(i)));
       }
     }
+    maps[c] = cell_map(boundary, c);
     const double size = (hi - lo).norm();
     cell_size[c] = size;
     coordinate_scale[c] = scale;
@@ -375,35 +374,23 @@ void LayerLocator::Impl::try_cell(int c, Query& q) const {
   const double tolerance =
       1e-13 * cell_size[cell] +
       16.0 * kDoubleEps * std::max(coordinate_scale[cell], q.point.cwiseAbs().maxCoeff());
-  const int per_cell = nodes_per_cell;
-  const std::array<double, 18>& X = corners[cell];  // node k, axis i at 3k + i
+  const CellMap& map = maps[cell];
   // Plain scalars below: Eigen's small fixed-size temporaries here went through the stack and
   // cost more than the arithmetic (store-forwarding stalls).
-  std::array<double, 3> xi{};
+  double xi[3] = {};
   const Eigen::Vector3d start = cell_centroid(dim);
-  for (int i = 0; i < 3; ++i) xi[static_cast<std::size_t>(i)] = start[i];
+  for (int i = 0; i < 3; ++i) xi[i] = start[i];
+  const double point[3] = {q.point[0], q.point[1], q.point[2]};
   bool converged = false;
+  double J[3][3];
   for (int iteration = 0; iteration < kMaxNewtonIterations; ++iteration) {
-    // x(xi) and J = dx/dxi from one basis evaluation (the map of cell_point / cell_jacobian).
-    const AlphaBasis basis = alpha_basis(dim, Eigen::Vector3d(xi[0], xi[1], xi[2]));
-    std::array<double, 3> r{-q.point[0], -q.point[1], -q.point[2]};
-    std::array<std::array<double, 3>, 3> J{};
-    for (int k = 0; k < per_cell; ++k) {
-      const double n = basis.N[static_cast<std::size_t>(k)];
-      const std::array<double, 3> dn{basis.dN(k, 0), basis.dN(k, 1), basis.dN(k, 2)};
-      for (std::size_t i = 0; i < 3; ++i) {
-        const double x = X[3 * static_cast<std::size_t>(k) + i];
-        r[i] += n * x;
-        for (std::size_t j = 0; j < 3; ++j) J[i][j] += x * dn[j];
-      }
-    }
+    double r[3];
+    map.evaluate(xi, point, r, J);
     if (r[0] * r[0] + r[1] * r[1] + r[2] * r[2] < tolerance * tolerance) {
       converged = true;
       break;
     }
-    for (int i = dim; i < 3; ++i) {
-      J[static_cast<std::size_t>(i)][static_cast<std::size_t>(i)] = 1.0;  // unused axes
-    }
+    for (int i = dim; i < 3; ++i) J[i][i] = 1.0;  // unused axes
     // xi -= J^-1 r by Cramer's rule (cofactors of the 3 x 3 Jacobian).
     const double c00 = J[1][1] * J[2][2] - J[1][2] * J[2][1];
     const double c01 = J[1][2] * J[2][0] - J[1][0] * J[2][2];
@@ -432,6 +419,9 @@ void LayerLocator::Impl::try_cell(int c, Query& q) const {
     q.best_margin = margin;
     q.best.cell = c;
     q.best.xi = solution;
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) q.best.jacobian(i, j) = J[i][j];  // at xi: unused entries 0
+    }
   }
   if (margin > kClearlyInside) q.settled = true;
 }

@@ -1,23 +1,26 @@
 #pragma once
 // The boundary-grid basis of one particle, shared by the Blending and Enhanced steps.
 
+#include <array>
+
 #include "mpm/dual_grid.hpp"
 #include "mpmgeom/boundary_grid.hpp"
+#include "mpmgeom/locator.hpp"
 
 namespace mpm {
 
 template <int D>
-AlphaStencil<D> alpha_stencil(const DualWall<D>& w, int cell, const Eigen::Vector3d& xi) {
-  const mpmgeom::AlphaBasis b = mpmgeom::alpha_basis(D, xi);
+AlphaStencil<D> alpha_stencil(const DualWall<D>& w, const mpmgeom::LayerLocator::Location& at) {
+  const mpmgeom::AlphaBasis b = mpmgeom::alpha_basis(D, at.xi);
   AlphaStencil<D> s;
   s.count = w.layer->nodes_per_cell();
-  Mat<D> J = Mat<D>::Zero();  // dx/dxi
+  const std::array<int, 6>& nodes = w.cell_nodes[static_cast<std::size_t>(at.cell)];
   for (int k = 0; k < s.count; ++k) {
-    s.node[k] = w.layer->cells(cell, k);
+    s.node[k] = nodes[static_cast<std::size_t>(k)];
     s.N[k] = b.N[k];
-    J += w.position[s.node[k]] * b.dN.row(k).template head<D>();
   }
-  const Mat<D> inv_jt = J.inverse().transpose();
+  // dx/dxi as the locator's Newton formed it at xi (the cell's nodes are not read again).
+  const Mat<D> inv_jt = at.jacobian.template topLeftCorner<D, D>().inverse().transpose();
   for (int k = 0; k < s.count; ++k) {
     s.dN[k] = inv_jt * b.dN.row(k).template head<D>().transpose();
   }

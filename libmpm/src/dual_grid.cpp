@@ -283,6 +283,13 @@ void Solver<D>::setup_dual_walls() {
     w.spec = &spec;
     w.layer = &spec.package->layer;
     w.locator = std::make_unique<mpmgeom::LayerLocator>(*w.layer);
+    w.cell_nodes.assign(w.layer->cell_count(), {});
+    for (std::size_t c = 0; c < w.cell_nodes.size(); ++c) {
+      for (int k = 0; k < w.layer->nodes_per_cell(); ++k) {
+        w.cell_nodes[c][static_cast<std::size_t>(k)] =
+            w.layer->cells(static_cast<Eigen::Index>(c), k);
+      }
+    }
     const auto n = static_cast<std::size_t>(w.layer->nodes.rows());
     w.position.resize(n);
     for (std::size_t i = 0; i < n; ++i) {
@@ -462,7 +469,7 @@ void Solver<D>::locate_in_layers() {
       // first: particles move a fraction of a cell per step.
       const int previous_wall = P.layer_wall[p];
       const int previous_cell =
-          previous_wall >= 0 ? layer_cell_[static_cast<std::size_t>(P.layer_slot[p])] : -1;
+          previous_wall >= 0 ? layer_at_[static_cast<std::size_t>(P.layer_slot[p])].cell : -1;
       P.layer_wall[p] = -1;
       long cell = 0;
       for (int d = 0; d < D; ++d) {
@@ -481,22 +488,20 @@ void Solver<D>::locate_in_layers() {
             x, previous_wall == static_cast<int>(wi) ? previous_cell : -1);
         if (found.cell >= 0) {
           P.layer_wall[p] = static_cast<int>(wi);
-          hits.push_back({static_cast<int>(p), static_cast<int>(wi), found.cell, found.xi});
+          hits.push_back({static_cast<int>(p), static_cast<int>(wi), found});
           break;
         }
       }
     }
   });
   layer_list_.clear();
-  layer_cell_.clear();
-  layer_xi_.clear();
+  layer_at_.clear();
   for (const auto& hits : layer_hits_) {
     for (const LayerHit& hit : hits) {
       P.layer_slot[hit.particle] = static_cast<int>(layer_list_.size());
       ++dual_[hit.wall].layer_particles;
       layer_list_.push_back(hit.particle);
-      layer_cell_.push_back(hit.cell);
-      layer_xi_.push_back(hit.xi);
+      layer_at_.push_back(hit.at);
     }
   }
   layer_stencil_.resize(layer_list_.size());
@@ -511,8 +516,7 @@ void Solver<D>::locate_in_layers() {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
           const auto p = static_cast<std::size_t>(layer_list_[i]);
           const DualWall<D>& w = dual_[P.layer_wall[p]];
-          const AlphaStencil<D>& st = layer_stencil_[i] =
-              alpha_stencil(w, layer_cell_[i], layer_xi_[i]);
+          const AlphaStencil<D>& st = layer_stencil_[i] = alpha_stencil(w, layer_at_[i]);
           LayerTerms& t = layer_terms_[i];
           const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
           t.vs = -volume * P.stress[p];
@@ -525,7 +529,7 @@ void Solver<D>::locate_in_layers() {
           if (w.spec->contact.separable) {
             const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
             t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
-            t.window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
+            t.window = w.touch_window[static_cast<std::size_t>(layer_at_[i].cell)] + half;
           }
           // The MUSL remap's nodal velocity is that of the particles at their centroid, which
           // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced

@@ -212,6 +212,19 @@ void expect_round_trip(const BoundaryGrid& g, int samples, std::uint64_t seed) {
     const Eigen::Vector3d xi = random_xi(g.dimension, rng);
     const Eigen::Vector3d p = mpmgeom::cell_point(g, c, xi);
     points.row(n) = p.head(g.dimension).transpose();
+    // The map in closed form (which Newton evaluates) is the basis's map: x and dx/dxi agree
+    // to round-off of the coordinates.
+    const Eigen::Matrix3d J = mpmgeom::cell_jacobian(g, c, xi);
+    double r[3];
+    double closed[3][3];
+    const double origin[3] = {};
+    mpmgeom::cell_map(g, c).evaluate(xi.data(), origin, r, closed);
+    for (int i = 0; i < 3; ++i) {
+      ASSERT_NEAR(r[i], p[i], 1e-14 * scale) << "cell " << c << " axis " << i;
+      for (int j = 0; j < 3; ++j) {
+        ASSERT_NEAR(closed[i][j], J(i, j), 1e-14 * scale) << "cell " << c << " (" << i << j << ")";
+      }
+    }
     const LayerLocator::Location loc = locator.locate(p);
     expected_cell[static_cast<std::size_t>(n)] = loc.cell;
     ASSERT_GE(loc.cell, 0) << "sample " << n << " cell " << c;
@@ -221,7 +234,12 @@ void expect_round_trip(const BoundaryGrid& g, int samples, std::uint64_t seed) {
       const LayerLocator::Location hinted = locator.locate(p, hint);
       EXPECT_EQ(hinted.cell, loc.cell) << "sample " << n << " hint " << hint;
       EXPECT_EQ(hinted.xi, loc.xi) << "sample " << n << " hint " << hint;
+      EXPECT_EQ(hinted.jacobian, loc.jacobian) << "sample " << n << " hint " << hint;
     }
+    // The Jacobian handed back is the map's at the answer (the basis gradients' J).
+    const Eigen::Matrix3d at_answer =
+        mpmgeom::cell_jacobian(g, static_cast<std::size_t>(loc.cell), loc.xi);
+    EXPECT_LT((loc.jacobian - at_answer).cwiseAbs().maxCoeff(), 1e-14 * scale) << "sample " << n;
     if (loc.cell == static_cast<int>(c)) {
       ++same;
       EXPECT_LT((loc.xi - xi).cwiseAbs().maxCoeff(), 1e-9) << "cell " << c;

@@ -72,6 +72,37 @@ struct AlphaBasis {
 };
 AlphaBasis alpha_basis(int dimension, const Eigen::Vector3d& xi);
 
+/// A cell's isoparametric map in closed form, the node differences formed once:
+/// x(xi) = a + sum_j u_j e_j + z (d + sum_j u_j f_j), u the coordinates along the wall (xi_0,
+/// xi_1 in 3D; xi_0 in 2D; none in 1D) and z = xi_{dimension-1} across the layer. The map of
+/// alpha_basis() over the cell's nodes (3D: a = X_0, e_j = X_{j+1} - X_0, d = Y_0 - X_0,
+/// f_j = (Y_{j+1} - X_{j+1}) - d, X the nodes on the wall side, Y = X_{k+3} across), so a point
+/// and its Jacobian cost a few multiply-adds (point location and each layer particle's basis
+/// gradients, every step). f = 0 where the cell is affine (a layer over a plane).
+struct CellMap {
+  int dimension = 3;
+  /// a, e_0, e_1, d, f_0, f_1 at 3i + axis (unused vectors and axes 0).
+  std::array<double, 18> v{};
+
+  /// r = x(xi) - p and J = dx/dxi (columns and rows beyond `dimension` 0).
+  void evaluate(const double* xi, const double* p, double* r, double (*J)[3]) const {
+    const int m = dimension - 1;
+    const double z = xi[m];
+    for (int i = 0; i < 3; ++i) {
+      double x = v[i] - p[i], across = v[9 + i];
+      for (int j = 0; j < m; ++j) {
+        x += xi[j] * v[3 + 3 * j + i];
+        across += xi[j] * v[12 + 3 * j + i];
+        J[i][j] = v[3 + 3 * j + i] + z * v[12 + 3 * j + i];
+      }
+      r[i] = x + z * across;
+      J[i][m] = across;
+      for (int j = m + 1; j < 3; ++j) J[i][j] = 0.0;
+    }
+  }
+};
+CellMap cell_map(const BoundaryGrid& grid, std::size_t c);
+
 /// Physical position of natural coordinates xi in cell c, and the Jacobian dx/dxi
 /// (dimension x dimension, stored in the top-left block).
 Eigen::Vector3d cell_point(const BoundaryGrid& grid, std::size_t c, const Eigen::Vector3d& xi);

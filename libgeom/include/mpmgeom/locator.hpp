@@ -26,6 +26,9 @@ class LayerLocator {
   struct Location {
     int cell = -1;                                 ///< -1: not in the layer
     Eigen::Vector3d xi = Eigen::Vector3d::Zero();  ///< natural coordinates in `cell` (unused 0)
+    /// dx/dxi of the cell's map at xi (the top-left dimension x dimension block; the rest 0),
+    /// for the basis gradients: Newton formed it at the answer.
+    Eigen::Matrix3d jacobian = Eigen::Matrix3d::Zero();
   };
   /// Throws std::invalid_argument for inconsistent arrays, std::runtime_error if Embree fails.
   explicit LayerLocator(const BoundaryGrid& boundary);

@@ -264,6 +264,9 @@ struct DualWall {
   const DualWallSpec* spec = nullptr;
   const mpmgeom::BoundaryGrid* layer = nullptr;
   std::unique_ptr<mpmgeom::LayerLocator> locator;
+  /// Each layer cell's nodes, a cell's together (`layer->cells` is column-major: one cache line
+  /// a node), for alpha_stencil().
+  std::vector<std::array<int, 6>> cell_nodes;
 
   // Boundary-grid nodal arrays (same roles as in Grid<D>).
   std::vector<Vec<D>> position;

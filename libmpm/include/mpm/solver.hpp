@@ -290,9 +290,9 @@ class Solver final : public Simulation {
   /// computed once by locate_in_layers() for the scatters, gathers and the remap of the step.
   std::vector<int> layer_list_;
   std::vector<AlphaStencil<D>> layer_stencil_;
-  std::vector<int> layer_cell_;            ///< per layer particle: its layer cell
-  std::vector<Eigen::Vector3d> layer_xi_;  ///< and its natural coordinates there
-  std::vector<Mat<D>> layer_gradient_;     ///< and its velocity gradient this step
+  /// Per layer particle: its layer cell, natural coordinates there and the map's Jacobian.
+  std::vector<mpmgeom::LayerLocator::Location> layer_at_;
+  std::vector<Mat<D>> layer_gradient_;  ///< and its velocity gradient this step
   /// Per layer particle, for layer_scatter() (locate_in_layers() fills them): -V sigma and m b
   /// at the step's start, its point of the isoparametric map (`at`, for the remap's
   /// centroids), and the touch test's reach and window (separable walls).
@@ -308,8 +308,8 @@ class Solver final : public Simulation {
   /// locate_in_layers() per chunk of particles: the particles a layer holds, with their wall,
   /// cell and natural coordinates (joined in chunk order, so the list stays in index order).
   struct LayerHit {
-    int particle, wall, cell;
-    Eigen::Vector3d xi;
+    int particle, wall;
+    mpmgeom::LayerLocator::Location at;
   };
   std::vector<std::vector<LayerHit>> layer_hits_;
   /// Per standard-grid cell (locate_in_layers()'s numbering), 1 where the stencil of a particle
