@@ -14,7 +14,7 @@ AlphaStencil<D> alpha_stencil(const DualWall<D>& w, const mpmgeom::LayerLocator:
   const mpmgeom::AlphaBasis b = mpmgeom::alpha_basis(D, at.xi);
   AlphaStencil<D> s;
   s.count = w.layer->nodes_per_cell();
-  const std::array<int, 6>& nodes = w.cell_nodes[static_cast<std::size_t>(at.cell)];
+  const auto& nodes = w.cell_nodes[static_cast<std::size_t>(at.cell)];
   for (int k = 0; k < s.count; ++k) {
     s.node[k] = nodes[static_cast<std::size_t>(k)];
     s.N[k] = b.N[k];

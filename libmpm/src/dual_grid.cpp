@@ -11,7 +11,9 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
+#include <numeric>
 #include <type_traits>
 #include <unordered_map>
 
@@ -285,7 +287,7 @@ void Solver<D>::setup_dual_walls() {
     w.locator = std::make_unique<mpmgeom::LayerLocator>(*w.layer);
     w.cell_nodes.assign(w.layer->cell_count(), {});
     for (std::size_t c = 0; c < w.cell_nodes.size(); ++c) {
-      for (int k = 0; k < w.layer->nodes_per_cell(); ++k) {
+      for (int k = 0; k < DualWall<D>::kCellNodes; ++k) {  // the scene's dimension (scene.cpp)
         w.cell_nodes[c][static_cast<std::size_t>(k)] =
             w.layer->cells(static_cast<Eigen::Index>(c), k);
       }
@@ -302,8 +304,26 @@ void Solver<D>::setup_dual_walls() {
     w.velocity_new.assign(n, Vec<D>::Zero());
     w.centroid.assign(n, Vec<D>::Zero());
     w.touch_gap.assign(n, std::numeric_limits<double>::infinity());
-    w.scatter_count.assign(n, 0);
-    w.scatter_slot.assign(n, -1);
+    // Each node's (cell, slot) pairs, cells in increasing order, and the cells' sort arrays.
+    constexpr int slots = DualWall<D>::kCellNodes;
+    const std::size_t cell_count = w.layer->cell_count();
+    w.node_cell_first.assign(n + 1, 0);
+    for (std::size_t c = 0; c < cell_count; ++c) {
+      for (int k = 0; k < slots; ++k)
+        ++w.node_cell_first[static_cast<std::size_t>(w.cell_nodes[c][k]) + 1];
+    }
+    std::partial_sum(w.node_cell_first.begin(), w.node_cell_first.end(), w.node_cell_first.begin());
+    w.node_cells.resize(static_cast<std::size_t>(w.node_cell_first.back()));
+    std::vector<int> cursor(w.node_cell_first.begin(), w.node_cell_first.end() - 1);
+    for (std::size_t c = 0; c < cell_count; ++c) {
+      for (int k = 0; k < slots; ++k) {
+        const auto node = static_cast<std::size_t>(w.cell_nodes[c][static_cast<std::size_t>(k)]);
+        w.node_cells[static_cast<std::size_t>(cursor[node]++)] = static_cast<int>(c) * slots + k;
+      }
+    }
+    w.cell_first.assign(cell_count + 1, 0);
+    w.cell_cursor.assign(cell_count, 0);
+    w.node_reached.assign(n, 0);
     w.enhanced = spec.method == CouplingMethod::enhanced;
     if (w.enhanced) {
       w.momentum_new.assign(n, Vec<D>::Zero());
@@ -460,6 +480,7 @@ void Solver<D>::locate_in_layers() {
   constexpr std::size_t kChunk = 1024;
   layer_hits_.resize((P.size() + kChunk - 1) / kChunk);
   near_coupling_.resize(coupled_cell_.empty() ? 0 : P.size());
+  std::atomic<bool> moved{false};  // a particle changed layer cell (or entered or left one)
   tbb::parallel_for(std::size_t{0}, layer_hits_.size(), [&](std::size_t chunk) {
     std::vector<LayerHit>& hits = layer_hits_[chunk];
     hits.clear();
@@ -489,11 +510,14 @@ void Solver<D>::locate_in_layers() {
         if (found.cell >= 0) {
           P.layer_wall[p] = static_cast<int>(wi);
           hits.push_back({static_cast<int>(p), static_cast<int>(wi), found});
+          if (previous_cell != found.cell) moved.store(true, std::memory_order_relaxed);
           break;
         }
       }
+      if (P.layer_wall[p] != previous_wall) moved.store(true, std::memory_order_relaxed);
     }
   });
+  if (moved.load()) layer_sort_current_ = false;
   layer_list_.clear();
   layer_at_.clear();
   for (const auto& hits : layer_hits_) {
@@ -570,52 +594,47 @@ void Solver<D>::layer_scatter(bool with_force) {
     }
   }
   if (dual_.empty()) return;
-  constexpr int kSlots = std::extent_v<decltype(AlphaStencil<D>::node)>;
-  if (with_force) {
-    // The layer particles by node, once a step (the remap has the same stencils): a counting
-    // sort over the nodes reached (in increasing order) that keeps the layer list's order at
-    // each node.
-    for (auto& w : dual_) w.scatter_nodes.clear();
+  if (with_force && !layer_sort_current_) {
+    // The layer particles by cell, again when a particle changed cell (the remap has the same
+    // stencils): a counting sort that keeps the layer list's order within a cell. A node's
+    // (particle, slot) pairs are then those of the cells around it (DualWall::node_cells), and
+    // the nodes reached are those of the occupied cells.
+    layer_sort_current_ = true;
+    for (auto& w : dual_) std::fill(w.cell_first.begin(), w.cell_first.end(), 0);
     for (std::size_t i = 0; i < layer_list_.size(); ++i) {
       DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
-      const AlphaStencil<D>& st = layer_stencil_[i];
-      for (int k = 0; k < st.count; ++k) {
-        if (w.scatter_count[st.node[k]]++ == 0) w.scatter_nodes.push_back(st.node[k]);
-      }
+      ++w.cell_first[static_cast<std::size_t>(layer_at_[i].cell) + 1];
     }
     for (auto& w : dual_) {
+      std::partial_sum(w.cell_first.begin(), w.cell_first.end(), w.cell_first.begin());
+      std::copy(w.cell_first.begin(), w.cell_first.end() - 1, w.cell_cursor.begin());
+      w.cell_members.resize(static_cast<std::size_t>(w.cell_first.back()));
+    }
+    layer_place_.resize(layer_list_.size());
+    for (std::size_t i = 0; i < layer_list_.size(); ++i) {
+      DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
+      const int place = w.cell_cursor[static_cast<std::size_t>(layer_at_[i].cell)]++;
+      w.cell_members[static_cast<std::size_t>(place)] = static_cast<int>(i);
+      layer_place_[i] = place;
+    }
+    for (auto& w : dual_) {
+      w.scatter_nodes.clear();
+      for (std::size_t c = 0; c + 1 < w.cell_first.size(); ++c) {
+        if (w.cell_first[c + 1] == w.cell_first[c]) continue;
+        for (int k = 0; k < DualWall<D>::kCellNodes; ++k) {
+          const int node = w.cell_nodes[c][static_cast<std::size_t>(k)];
+          if (w.node_reached[static_cast<std::size_t>(node)] != 0) continue;
+          w.node_reached[static_cast<std::size_t>(node)] = 1;
+          w.scatter_nodes.push_back(node);
+        }
+      }
       std::sort(w.scatter_nodes.begin(), w.scatter_nodes.end());
-      w.scatter_first.assign(w.scatter_nodes.size() + 1, 0);
-      for (std::size_t j = 0; j < w.scatter_nodes.size(); ++j) {
-        const auto n = static_cast<std::size_t>(w.scatter_nodes[j]);
-        w.scatter_slot[n] = static_cast<int>(j);
-        w.scatter_first[j + 1] = w.scatter_first[j] + w.scatter_count[n];
-        w.scatter_count[n] = 0;
-      }
-      w.scatter_entries.resize(static_cast<std::size_t>(w.scatter_first.back()));
-    }
-    layer_entry_.resize(layer_list_.size() * kSlots);
-    for (std::size_t i = 0; i < layer_list_.size(); ++i) {
-      DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
-      const AlphaStencil<D>& st = layer_stencil_[i];
-      for (int k = 0; k < st.count; ++k) {
-        // scatter_first[j] runs ahead while filling, and is moved back below.
-        const int code = static_cast<int>(i) * kSlots + k;
-        const int place = w.scatter_first[static_cast<std::size_t>(w.scatter_slot[st.node[k]])]++;
-        w.scatter_entries[static_cast<std::size_t>(place)] = code;
-        layer_entry_[static_cast<std::size_t>(code)] = place;
-      }
-    }
-    for (auto& w : dual_) {
-      for (std::size_t j = w.scatter_first.size() - 1; j > 0; --j) {
-        w.scatter_first[j] = w.scatter_first[j - 1];
-      }
-      w.scatter_first[0] = 0;
-      w.scatter_terms.resize(w.scatter_entries.size());
+      for (const int node : w.scatter_nodes) w.node_reached[static_cast<std::size_t>(node)] = 0;
+      w.scatter_terms.resize(w.cell_members.size() * DualWall<D>::kCellNodes);
     }
   }
   // Each pair's terms, particle by particle (a particle's data read once for its stencil), at
-  // the pair's place among its node's entries.
+  // the particle's place in its wall's cell order (its stencil's terms side by side).
   //
   // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
   // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md). The
@@ -636,8 +655,9 @@ void Solver<D>::layer_scatter(bool with_force) {
           const LayerTerms& t = layer_terms_[i];
           const AlphaStencil<D>& st = layer_stencil_[i];
           const double m = P.mass[p];
+          const auto first = static_cast<std::size_t>(layer_place_[i] * DualWall<D>::kCellNodes);
           for (int k = 0; k < st.count; ++k) {
-            auto& terms = w.scatter_terms[static_cast<std::size_t>(layer_entry_[i * kSlots + k])];
+            auto& terms = w.scatter_terms[first + static_cast<std::size_t>(k)];
             const double N = st.N[k];
             Vec<D> momentum;
             if (affine) {
@@ -658,26 +678,38 @@ void Solver<D>::layer_scatter(bool with_force) {
           }
         }
       });
-  // Each node sums its particles' terms in the layer list's order (the order of a serial
-  // scatter), from contiguous memory, nodes in parallel: no two tasks write the same node.
+  // Each node sums its particles' terms cell by cell around it (in DualWall::node_cells' order),
+  // in the layer list's order within a cell, the terms of one cell side by side; nodes in
+  // parallel: no two tasks write the same node.
   for (auto& w : dual_) {
     const bool touch = with_force && w.spec->contact.separable;
     const bool centroids = !with_force && !w.enhanced;
+    // f(place, term) for each (particle, slot) pair of `node`: the particle's place in the cell
+    // order, and its pair's terms.
+    auto for_each_pair = [&](int node, auto&& f) {
+      const auto n = static_cast<std::size_t>(node);
+      for (int e = w.node_cell_first[n]; e < w.node_cell_first[n + 1]; ++e) {
+        const int code = w.node_cells[static_cast<std::size_t>(e)];
+        const auto c = static_cast<std::size_t>(code / DualWall<D>::kCellNodes);
+        const int k = code % DualWall<D>::kCellNodes;
+        for (int place = w.cell_first[c]; place < w.cell_first[c + 1]; ++place) {
+          f(place, w.scatter_terms[static_cast<std::size_t>(place * DualWall<D>::kCellNodes + k)]);
+        }
+      }
+    };
     tbb::parallel_for(
         tbb::blocked_range<std::size_t>(0, w.scatter_nodes.size(), 256), [&](const auto& r) {
           for (std::size_t j = r.begin(); j != r.end(); ++j) {
             const int node = w.scatter_nodes[j];
             const auto n = static_cast<std::size_t>(node);
-            const int first = w.scatter_first[j], last = w.scatter_first[j + 1];
             double mass = 0.0, momentum[D] = {}, second[D] = {};  // force, or the centroid's
-            for (int e = first; e < last; ++e) {
-              const auto& terms = w.scatter_terms[static_cast<std::size_t>(e)];
+            for_each_pair(node, [&](int /*place*/, const auto& terms) {
               mass += terms[0];
               for (int a = 0; a < D; ++a) {
                 momentum[a] += terms[1 + a];
                 second[a] += terms[1 + D + a];
               }
-            }
+            });
             for (int a = 0; a < D; ++a) w.momentum[n][a] = momentum[a];
             if (centroids) {
               for (int a = 0; a < D; ++a) w.centroid[n][a] = second[a];
@@ -688,9 +720,9 @@ void Solver<D>::layer_scatter(bool with_force) {
             const int wi = w.wall_index_of_node[n];
             if (!touch || wi < 0) continue;
             const Vec<D>& at_node = w.position[n];
-            for (int e = first; e < last; ++e) {
-              const int code = w.scatter_entries[static_cast<std::size_t>(e)];
-              const auto i = static_cast<std::size_t>(code / kSlots);
+            for_each_pair(node, [&](int place, const auto& /*terms*/) {
+              const auto i =
+                  static_cast<std::size_t>(w.cell_members[static_cast<std::size_t>(place)]);
               const auto p = static_cast<std::size_t>(layer_list_[i]);
               const LayerTerms& t = layer_terms_[i];
               const Vec<D> d = P.position[p] - at_node;
@@ -706,7 +738,7 @@ void Solver<D>::layer_scatter(bool with_force) {
                   if (c1 > c0) w.corner_gap[c0 + c] = std::min(w.corner_gap[c0 + c], gap);
                 }
               }
-            }
+            });
           }
         });
   }

@@ -7,6 +7,7 @@
 #include <Eigen/SparseCore>
 #include <array>
 #include <chrono>
+#include <cstdint>
 #include <memory>
 #include <stdexcept>
 #include <string>
@@ -261,12 +262,14 @@ struct EnhancedState {
 
 template <int D>
 struct DualWall {
+  /// Nodes of a layer cell in D dimensions (segment, quadrilateral, wedge).
+  static constexpr int kCellNodes = 2 * D;
   const DualWallSpec* spec = nullptr;
   const mpmgeom::BoundaryGrid* layer = nullptr;
   std::unique_ptr<mpmgeom::LayerLocator> locator;
   /// Each layer cell's nodes, a cell's together (`layer->cells` is column-major: one cache line
   /// a node), for alpha_stencil().
-  std::vector<std::array<int, 6>> cell_nodes;
+  std::vector<std::array<int, kCellNodes>> cell_nodes;
 
   // Boundary-grid nodal arrays (same roles as in Grid<D>).
   std::vector<Vec<D>> position;
@@ -362,17 +365,21 @@ struct DualWall {
   NodeBlock<D> grid_block, layer_block, gap, lambda, residual, update, search, search_product;
   std::vector<double> solve_work;  ///< ldlt_solve()'s
   double min_cell_size = 0.0;      ///< for the CFL limit
-  /// This step's layer particles by boundary node (layer_scatter(), which sums each node's terms
-  /// on its own, in parallel): scatter_nodes lists the nodes they reach, in increasing order
-  /// (the only nodes whose arrays hold anything this step), and the (particle, stencil slot)
-  /// pairs of scatter_nodes[j] are scatter_entries[scatter_first[j] .. scatter_first[j + 1]),
-  /// coded as slot + place in the layer list times the slots per cell, in layer-list order.
-  std::vector<int> scatter_first, scatter_entries, scatter_nodes;
-  /// Per boundary node: the counting sort's count (zero between sorts) and the node's place in
-  /// scatter_nodes (valid for the nodes listed there).
-  std::vector<int> scatter_count, scatter_slot;
-  /// Each (particle, stencil slot) pair's terms, at its place in scatter_entries (layer_scatter()
-  /// forms them particle by particle, then sums them node by node from contiguous memory):
+  /// Each boundary node's (cell, slot) pairs: node_cells[node_cell_first[n] ..
+  /// node_cell_first[n + 1]), coded as cell times the nodes per cell plus the slot, cells in
+  /// increasing order (setup_dual_walls()).
+  std::vector<int> node_cell_first, node_cells;
+  /// This step's layer particles by cell (layer_scatter()'s counting sort, which keeps the layer
+  /// list's order within a cell): cell c holds the places cell_first[c] .. cell_first[c + 1],
+  /// and cell_members[place] is the particle's place in the layer list. cell_cursor and
+  /// node_reached are the sort's scratch (node_reached zero between sorts).
+  std::vector<int> cell_first, cell_cursor, cell_members;
+  std::vector<std::uint8_t> node_reached;
+  /// The boundary nodes this step's layer particles reach, in increasing order (the only nodes
+  /// whose arrays hold anything this step): those of the occupied cells.
+  std::vector<int> scatter_nodes;
+  /// Each (particle, stencil slot) pair's terms at place * nodes per cell + slot (layer_scatter()
+  /// forms them particle by particle, then sums them node by node over the cells around it):
   /// mass, momentum and force, or (the MUSL remap) momentum and the centroid's.
   std::vector<std::array<double, 1 + 2 * D>> scatter_terms;
   std::size_t layer_particles = 0;

@@ -302,9 +302,11 @@ class Solver final : public Simulation {
     double reach, window;
   };
   std::vector<LayerTerms> layer_terms_;
-  /// Per layer particle and stencil slot (place in the layer list times the slots per cell plus
-  /// the slot): the pair's place in its wall's scatter_entries (layer_scatter()).
-  std::vector<int> layer_entry_;
+  /// Per layer particle: its place in its wall's cell order (DualWall::cell_members).
+  std::vector<int> layer_place_;
+  /// layer_scatter()'s sort by node stands: every particle is in the layer cell it was in (or
+  /// in none, as it was) when the sort was made (locate_in_layers() clears it otherwise).
+  bool layer_sort_current_ = false;
   /// locate_in_layers() per chunk of particles: the particles a layer holds, with their wall,
   /// cell and natural coordinates (joined in chunk order, so the list stays in index order).
   struct LayerHit {
