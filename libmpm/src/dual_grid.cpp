@@ -309,8 +309,8 @@ void Solver<D>::setup_dual_walls() {
     const std::size_t cell_count = w.layer->cell_count();
     w.node_cell_first.assign(n + 1, 0);
     for (std::size_t c = 0; c < cell_count; ++c) {
-      for (int k = 0; k < slots; ++k)
-        ++w.node_cell_first[static_cast<std::size_t>(w.cell_nodes[c][k]) + 1];
+      for (const int node : w.cell_nodes[c])
+        ++w.node_cell_first[static_cast<std::size_t>(node) + 1];
     }
     std::partial_sum(w.node_cell_first.begin(), w.node_cell_first.end(), w.node_cell_first.begin());
     w.node_cells.resize(static_cast<std::size_t>(w.node_cell_first.back()));

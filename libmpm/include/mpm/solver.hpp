@@ -304,7 +304,7 @@ class Solver final : public Simulation {
   std::vector<LayerTerms> layer_terms_;
   /// Per layer particle: its place in its wall's cell order (DualWall::cell_members).
   std::vector<int> layer_place_;
-  /// layer_scatter()'s sort by node stands: every particle is in the layer cell it was in (or
+  /// layer_scatter()'s sort by cell stands: every particle is in the layer cell it was in (or
   /// in none, as it was) when the sort was made (locate_in_layers() clears it otherwise).
   bool layer_sort_current_ = false;
   /// locate_in_layers() per chunk of particles: the particles a layer holds, with their wall,
