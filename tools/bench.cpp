@@ -39,6 +39,7 @@
 #include "commands.hpp"
 #include "mpm/run.hpp"
 #include "process.hpp"
+#include "support/temp_directory.hpp"
 
 namespace mpm::tools {
 namespace {
@@ -205,7 +206,7 @@ int accuracy(const BenchArgs& args, const json& config) {
   }
   std::filesystem::path csv = args.csv_file;
   if (csv.empty() && !args.plot_file.empty()) {
-    csv = std::filesystem::temp_directory_path() /
+    csv = mpm::test::temporary_directory("the accuracy table behind the plot") /
           ("mpm_bench_" + std::to_string(::getpid()) + ".csv");
   }
   if (!csv.empty()) {
@@ -462,7 +463,8 @@ Plane plane_of(const Frame2& f, double extent, double along = 0.0) {
 class Stability {
  public:
   Stability(const BenchArgs& args, const json& config) : args_(args), config_(config) {
-    work_ = std::filesystem::temp_directory_path() / ("mpm_bench_" + std::to_string(::getpid()));
+    work_ = mpm::test::temporary_directory("the stability runs' files") /
+            ("mpm_bench_" + std::to_string(::getpid()));
     std::filesystem::create_directories(work_);
     const std::string where = args.config.string() + ": /limits";
     const json limits = config_value<json>(config, "limits", args.config.string() + ": ");

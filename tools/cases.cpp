@@ -27,6 +27,7 @@
 
 #include "cases.hpp"
 #include "mpm/solver.hpp"
+#include "support/temp_directory.hpp"
 
 namespace mpm::tools {
 
@@ -379,8 +380,8 @@ std::vector<Check> incline_block_2d(const json& p, const std::string& method, in
 std::vector<Check> incline_block_3d(const json& p, const std::string& method, int k) {
   std::vector<Check> out;
   const double h = param(p, "spacing") / k, T = param(p, "time");
-  const std::filesystem::path dir =
-      std::filesystem::temp_directory_path() / ("mpm_verify_" + std::to_string(::getpid()));
+  const std::filesystem::path dir = mpm::test::temporary_directory("the 3D incline's meshes") /
+                                    ("mpm_verify_" + std::to_string(::getpid()));
   std::filesystem::create_directories(dir);
   for (const double theta : p.at("angles").get<std::vector<double>>()) {
     for (const double mu : p.at("friction").get<std::vector<double>>()) {

@@ -15,6 +15,7 @@
 #include <unistd.h>
 
 #include "mpmgeom/triangle_mesh.hpp"
+#include "support/temp_directory.hpp"
 
 namespace mpm::test {
 
@@ -27,15 +28,7 @@ namespace mpm::test {
 /// exist) throws std::runtime_error naming it.
 inline std::filesystem::path floor_plane_file(const std::string& name, double level, double lo,
                                               double hi) {
-  std::filesystem::path directory;
-  try {
-    directory = std::filesystem::temp_directory_path();
-  } catch (const std::filesystem::filesystem_error& e) {
-    const char* tmpdir = std::getenv("TMPDIR");
-    throw std::runtime_error("no temporary directory to write the floor's mesh in (TMPDIR='" +
-                             std::string(tmpdir != nullptr ? tmpdir : "") +
-                             "': " + e.code().message() + ")");
-  }
+  const std::filesystem::path directory = temporary_directory("the floor's mesh");
   const std::string stem = name + "_floor_" + std::to_string(level);
   const auto file = directory / (stem + ".obj");
   const auto partial = directory / (stem + "." + std::to_string(::getpid()) + ".obj");

@@ -649,20 +649,31 @@ RunResult run_mpm_with_tmpdir(const fs::path& tmpdir, const std::vector<std::str
   return r;
 }
 
-// Where there is no temporary directory (TMPDIR names a file), `mpm bench` stops with one line
-// and exit 4 rather than abort: stability works in a folder of it (and aborted: only
-// configuration errors were caught), perf writes the floor's mesh there and names TMPDIR.
-TEST_F(CommandLine, BenchReportsATemporaryDirectoryItCannotUse) {
+// Where there is no temporary directory (TMPDIR names a file), `mpm bench` and `mpm verify` stop
+// with one line naming TMPDIR's value, exit 4 (bench) or 2 (verify), rather than abort or give
+// the library's bare "temp_directory_path: Not a directory": stability works in a folder of it
+// (and aborted: only configuration errors were caught), perf writes the floor's mesh there,
+// verify the 3D incline's.
+TEST_F(CommandLine, CommandsNameATemporaryDirectoryTheyCannotUse) {
   const fs::path not_a_directory = dir_ / "tmp_is_a_file";
   write_text(not_a_directory, "not a directory");
-  for (const std::string kind : {"stability", "perf"}) {
-    SCOPED_TRACE(kind);
-    const RunResult r = run_mpm_with_tmpdir(not_a_directory, {"bench", kind, "--smoke"});
-    EXPECT_EQ(r.exit_code, 4) << r.err;
+  struct Case {
+    std::vector<std::string> args;
+    int exit_code;
+    std::string command;
+  };
+  const std::vector<Case> cases = {
+      {{"bench", "stability", "--smoke"}, 4, "mpm bench stability"},
+      {{"bench", "perf", "--smoke"}, 4, "mpm bench perf"},
+      {{"verify", "--case", "incline_block_3d", "--method", "grid"}, 2, "mpm verify"}};
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.command);
+    const RunResult r = run_mpm_with_tmpdir(not_a_directory, c.args);
+    EXPECT_EQ(r.exit_code, c.exit_code) << r.err;
     EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
-    EXPECT_TRUE(contains(r.err, "mpm bench " + kind)) << r.err;
-    const std::string named = kind == "perf" ? not_a_directory.string() : "temp_directory_path";
-    EXPECT_TRUE(contains(r.err, named)) << r.err;
+    EXPECT_TRUE(contains(r.err, c.command)) << r.err;
+    EXPECT_TRUE(contains(r.err, "no temporary directory for")) << r.err;
+    EXPECT_TRUE(contains(r.err, "TMPDIR='" + not_a_directory.string() + "'")) << r.err;
   }
 }
 
