@@ -983,7 +983,8 @@ TEST_P(BlendingIncline, AngleInvariance3D) {
 // both paths are checked, and the test counts, from the wall's own locator, that both ran. A
 // sort kept after a particle changed cell sums that particle's pairs at its old cell's nodes,
 // and the moment no longer matches (the check for a changed cell removed: off by 0.5 m h in 2D;
-// 3D fails as well).
+// 3D fails as well). Bounds 1e-12 of m and of m h: round-off gives about 1e-15 (measured
+// 7e-16 and 3e-15), one pair summed at another cell's node moves its share N m_p by about h.
 template <int D>
 void expect_layer_moments(Solver<D>& s, const Scene& scene, double end) {
   const auto& P = s.particles;
