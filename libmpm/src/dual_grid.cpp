@@ -518,52 +518,62 @@ void Solver<D>::locate_in_layers() {
     }
   });
   if (moved.load()) layer_sort_current_ = false;
-  layer_list_.clear();
-  layer_at_.clear();
-  for (const auto& hits : layer_hits_) {
-    for (const LayerHit& hit : hits) {
-      P.layer_slot[hit.particle] = static_cast<int>(layer_list_.size());
-      ++dual_[hit.wall].layer_particles;
-      layer_list_.push_back(hit.particle);
-      layer_at_.push_back(hit.at);
-    }
+  // The chunks' hits joined in chunk order (so the list stays in index order), each at its
+  // place given by the counts of the chunks before it, in parallel; with each, the particle's
+  // boundary-grid basis and the terms of its scatters that depend neither on the node nor on
+  // what the step changes before them (layer_scatter(): its stress and body force are the
+  // step's first; its centroid point is where its basis puts it).
+  layer_chunk_first_.resize(layer_hits_.size() + 1);
+  layer_chunk_first_[0] = 0;
+  for (std::size_t chunk = 0; chunk < layer_hits_.size(); ++chunk) {
+    layer_chunk_first_[chunk + 1] = layer_chunk_first_[chunk] + layer_hits_[chunk].size();
   }
-  layer_stencil_.resize(layer_list_.size());
-  layer_gradient_.resize(layer_list_.size());
-  layer_terms_.resize(layer_list_.size());
+  const std::size_t layer_count = layer_chunk_first_.back();
+  layer_list_.resize(layer_count);
+  layer_at_.resize(layer_count);
+  layer_stencil_.resize(layer_count);
+  layer_gradient_.resize(layer_count);
+  layer_terms_.resize(layer_count);
   const bool remaps = scene_.update == UpdateScheme::musl;
-  // Each layer particle's boundary-grid basis, and the terms of its scatters that depend
-  // neither on the node nor on what the step changes before them (layer_scatter(): its stress
-  // and body force are the step's first; its centroid point is where its basis puts it).
-  tbb::parallel_for(
-      tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
-        for (std::size_t i = r.begin(); i != r.end(); ++i) {
-          const auto p = static_cast<std::size_t>(layer_list_[i]);
-          const DualWall<D>& w = dual_[P.layer_wall[p]];
-          const AlphaStencil<D>& st = layer_stencil_[i] = alpha_stencil(w, layer_at_[i]);
-          LayerTerms& t = layer_terms_[i];
-          const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
-          t.vs = -volume * P.stress[p];
-          t.mb = P.mass[p] * body_acceleration_[P.body[p]];
-          // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma
-          // node is in contact where a particle lying over it (within the node's share of the
-          // facet, DualWall::touch_window, plus the particle's half-size) touches the wall: the
-          // particle's near edge (half its initial size as a cube, widened by the touch
-          // tolerance) reaches it.
-          if (w.spec->contact.separable) {
-            const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
-            t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
-            t.window = w.touch_window[static_cast<std::size_t>(layer_at_[i].cell)] + half;
-          }
-          // The MUSL remap's nodal velocity is that of the particles at their centroid, which
-          // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced
-          // keeps the standard grid's C_p and has no use for it; USL does not remap).
-          if (remaps && !w.enhanced) {
-            t.at.setZero();
-            for (int k = 0; k < st.count; ++k) t.at += st.N[k] * w.position[st.node[k]];
-          }
-        }
-      });
+  tbb::parallel_for(std::size_t{0}, layer_hits_.size(), [&](std::size_t chunk) {
+    const std::vector<LayerHit>& hits = layer_hits_[chunk];
+    for (std::size_t j = 0; j < hits.size(); ++j) {
+      const std::size_t i = layer_chunk_first_[chunk] + j;
+      const auto p = static_cast<std::size_t>(hits[j].particle);
+      P.layer_slot[p] = static_cast<int>(i);
+      layer_list_[i] = hits[j].particle;
+      layer_at_[i] = hits[j].at;
+      const DualWall<D>& w = dual_[P.layer_wall[p]];
+      const AlphaStencil<D>& st = layer_stencil_[i] = alpha_stencil(w, layer_at_[i]);
+      LayerTerms& t = layer_terms_[i];
+      const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
+      t.vs = -volume * P.stress[p];
+      t.mb = P.mass[p] * body_acceleration_[P.body[p]];
+      // Separable walls: the touch test of layer_walls() and enhanced_assemble(). A Gamma
+      // node is in contact where a particle lying over it (within the node's share of the
+      // facet, DualWall::touch_window, plus the particle's half-size) touches the wall: the
+      // particle's near edge (half its initial size as a cube, widened by the touch
+      // tolerance) reaches it.
+      if (w.spec->contact.separable) {
+        const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
+        t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
+        t.window = w.touch_window[static_cast<std::size_t>(layer_at_[i].cell)] + half;
+      }
+      // The MUSL remap's nodal velocity is that of the particles at their centroid, which
+      // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced
+      // keeps the standard grid's C_p and has no use for it; USL does not remap).
+      if (remaps && !w.enhanced) {
+        t.at.setZero();
+        for (int k = 0; k < st.count; ++k) t.at += st.N[k] * w.position[st.node[k]];
+      }
+    }
+  });
+  if (dual_.size() == 1) {
+    dual_[0].layer_particles = layer_count;
+  } else {
+    for (const int p : layer_list_)
+      ++dual_[P.layer_wall[static_cast<std::size_t>(p)]].layer_particles;
+  }
 }
 
 template <int D>

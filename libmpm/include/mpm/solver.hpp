@@ -314,6 +314,7 @@ class Solver final : public Simulation {
     mpmgeom::LayerLocator::Location at;
   };
   std::vector<std::vector<LayerHit>> layer_hits_;
+  std::vector<std::size_t> layer_chunk_first_;  ///< each chunk's first place in the layer list
   /// Per standard-grid cell (locate_in_layers()'s numbering), 1 where the stencil of a particle
   /// in it (nodes c - 1 to c + 2 along each axis, every kernel) may reach a node a dual-grid
   /// wall's coupling changes (setup_dual_walls()); empty without dual-grid walls.
