@@ -509,7 +509,7 @@ void Solver<D>::locate_in_layers() {
             x, previous_wall == static_cast<int>(wi) ? previous_cell : -1);
         if (found.cell >= 0) {
           P.layer_wall[p] = static_cast<int>(wi);
-          hits.push_back({static_cast<int>(p), static_cast<int>(wi), found});
+          hits.push_back({static_cast<int>(p), found});
           if (previous_cell != found.cell) moved.store(true, std::memory_order_relaxed);
           break;
         }

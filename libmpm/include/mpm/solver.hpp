@@ -307,10 +307,11 @@ class Solver final : public Simulation {
   /// layer_scatter()'s sort by cell stands: every particle is in the layer cell it was in (or
   /// in none, as it was) when the sort was made (locate_in_layers() clears it otherwise).
   bool layer_sort_current_ = false;
-  /// locate_in_layers() per chunk of particles: the particles a layer holds, with their wall,
-  /// cell and natural coordinates (joined in chunk order, so the list stays in index order).
+  /// locate_in_layers() per chunk of particles: the particles a layer holds (their wall is
+  /// P.layer_wall), with their cell, natural coordinates and Jacobian (joined in chunk order, so
+  /// the list stays in index order).
   struct LayerHit {
-    int particle, wall;
+    int particle;
     mpmgeom::LayerLocator::Location at;
   };
   std::vector<std::vector<LayerHit>> layer_hits_;
