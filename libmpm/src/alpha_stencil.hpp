@@ -13,7 +13,7 @@ template <int D>
 AlphaStencil<D> alpha_stencil(const DualWall<D>& w, const mpmgeom::LayerLocator::Location& at) {
   const mpmgeom::AlphaBasis b = mpmgeom::alpha_basis(D, at.xi);
   AlphaStencil<D> s;
-  s.count = w.layer->nodes_per_cell();
+  s.count = DualWall<D>::kCellNodes;
   const auto& nodes = w.cell_nodes[static_cast<std::size_t>(at.cell)];
   for (int k = 0; k < s.count; ++k) {
     s.node[k] = nodes[static_cast<std::size_t>(k)];

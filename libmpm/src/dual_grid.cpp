@@ -568,12 +568,8 @@ void Solver<D>::locate_in_layers() {
       }
     }
   });
-  if (dual_.size() == 1) {
-    dual_[0].layer_particles = layer_count;
-  } else {
-    for (const int p : layer_list_)
-      ++dual_[P.layer_wall[static_cast<std::size_t>(p)]].layer_particles;
-  }
+  for (const int p : layer_list_)
+    ++dual_[P.layer_wall[static_cast<std::size_t>(p)]].layer_particles;
 }
 
 template <int D>
