@@ -1100,9 +1100,11 @@ void Solver<D>::layer_couple(bool remapped) {
       w.residual.noalias() = w.boundary_active.transpose() * b;
       const double scale = std::max(w.gap.norm(), w.residual.norm());
       w.gap -= w.residual;
-      // The grids agree at Phi already, to refine()'s 1e-10 of the interface terms (material
-      // moving as a whole, or in a linear field both grids carry exactly): no impulse, no solve.
-      if (w.gap.norm() <= kRefineTolerance * scale) return;
+      // The grids agree at Phi already, to the coupling's tolerance of the interface terms
+      // (material moving as a whole, or in a linear field both grids carry exactly): no
+      // impulse, no solve.
+      const double tolerance = scene_.coupling_tolerance;
+      if (w.gap.norm() <= tolerance * scale) return;
       // The D components side by side: each entry of the factor is read once for all of them.
       // Against an earlier step's factor, which only preconditions CG, L in single precision
       // (SparseLdlt); a factor of this step's S solves in full.
@@ -1114,7 +1116,7 @@ void Solver<D>::layer_couple(bool remapped) {
       factor_solve(w.gap, w.lambda);
       if (w.schur_refine) {
         // CG preconditioned by the factorisation in hand (conjugate_refine(): to an error below
-        // 1e-10 of x, or a residual below 1e-10 of the interface terms); unconverged (the
+        // the coupling's tolerance of x, or a residual below it of the interface terms); unconverged (the
         // masses moved too far from the factorised step's), factorise this step's S. The
         // products run through a and b, free by now.
         auto apply = [&](const Block& x, Block& y) {
@@ -1129,7 +1131,7 @@ void Solver<D>::layer_couple(bool remapped) {
           y += w.schur_shift * x;
         };
         if (conjugate_refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
-                             w.update, w.search, w.search_product, scale)) {  // sparse_pattern.hpp
+                             w.update, w.search, w.search_product, scale, tolerance)) {  // sparse_pattern.hpp
           w.refine_backoff = 0;
         } else {
           w.refine_wait = w.refine_backoff;

@@ -719,6 +719,7 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
     scene.mass_threshold = scheme.in_range("mass_threshold", 0.0, 0.5, false, 1e-9);
     scene.coupling_mass_threshold =
         scheme.in_range("coupling_mass_threshold", 0.0, 0.5, false, 1e-2);
+    scene.coupling_tolerance = scheme.in_range("coupling_tolerance", 1e-13, 1e-3, false, 1e-6);
     scene.dependence_tolerance = scheme.in_range("dependence_tolerance", 0.0, 1.0, false, 0.01);
     scene.drop_covered_enhancement = scheme.boolean("drop_covered_enhancement", true);
     scheme.finish();

@@ -445,8 +445,7 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
   }
 }
 
-/// refine()'s relative tolerance (below), also the Phi coupling's test of a gap that needs no
-/// solve at all.
+/// refine()'s relative tolerance (below).
 constexpr double kRefineTolerance = 1e-10;
 
 /// Refinement passes x += solve(b - apply(x)) from the x in hand: `apply(x, y)` sets y to this
@@ -509,10 +508,11 @@ bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& pas
 /// small q and still 0.27 at q = 0.5, where refinement gives up; and a change confined to a few
 /// rows (light nodes at a flow's front, whose 1/m weights move fast) is a low-rank change of
 /// F^-1 m, which CG removes in as many passes as its rank, whatever its size. Same arguments
-/// and tests as refine(): converged when the residual is below kTolerance * scale, or when the
-/// preconditioned residual z = F^-1 r (the correction refinement would add, the error to within
-/// a factor 1 +- q) is below kTolerance of x, and then z is added (the error left is about q |z|,
-/// as after refine()'s last pass). Unconverged after kMaxPasses, when z stops shrinking, or on a
+/// and tests as refine(), with the relative `tolerance` the caller asks for (the Phi coupling:
+/// the scene's scheme.coupling_tolerance): converged when the residual is below tolerance *
+/// scale, or when the preconditioned residual z = F^-1 r (the correction refinement would add,
+/// the error to within a factor 1 +- q) is below `tolerance` of x, and then z is added (the
+/// error left is about q |z|, as after refine()'s last pass). Unconverged after kMaxPasses, when z stops shrinking, or on a
 /// breakdown (p^T m p <= 0: m or F not positive definite). Unlike refine(), no forecast of the
 /// passes still needed: CG's pass-to-pass ratios are irregular (0.1 and then 0.01), and the
 /// forecast from them gave up on solves that converged in 4 or 5 passes (the debris scene's
@@ -520,22 +520,22 @@ bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& pas
 /// step). `direction` and `product` are scratch of b's shape too.
 template <class Rhs, class Apply, class Solve>
 bool conjugate_refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& passes,
-                      Rhs& residual, Rhs& update, Rhs& direction, Rhs& product, double scale) {
+                      Rhs& residual, Rhs& update, Rhs& direction, Rhs& product, double scale,
+                      double tolerance) {
   constexpr int kMaxPasses = 6;
-  constexpr double kTolerance = kRefineTolerance;
   constexpr int C = Rhs::ColsAtCompileTime;
   static_assert(C > 0, "conjugate_refine: the columns are fixed at compile time");
   Eigen::Array<double, 1, C> rz, rz_before;  // r_c^T z_c per column
   apply(x, residual);
   residual = b - residual;
-  if (residual.norm() <= kTolerance * scale) return true;
+  if (residual.norm() <= tolerance * scale) return true;
   double previous = x.norm();
   for (int pass = 1;; ++pass) {
     solve(residual, update);  // z = F^-1 r
     ++passes;
     const double step = update.norm(), size = x.norm();
     if (!std::isfinite(step)) return false;
-    if (step <= kTolerance * size) {
+    if (step <= tolerance * size) {
       x += update;
       return true;
     }
@@ -574,7 +574,7 @@ bool conjugate_refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::s
       x.row(i).array() += alpha * direction.row(i).array();
       residual.row(i).array() -= alpha * product.row(i).array();
     }
-    if (residual.norm() <= kTolerance * scale) return true;
+    if (residual.norm() <= tolerance * scale) return true;
   }
 }
 

@@ -186,6 +186,18 @@ TEST_F(CommandLine, RejectsNegativeDensity) {
   expect_rejected("/materials/0/density", {"positive", "-1000"});
 }
 
+TEST_F(CommandLine, RejectsACouplingToleranceNoSolveCanMeetOrNoInterfaceCanTrust) {
+  // Below 1e-13 the multipliers' own round-off decides when CG stops (it would give up and
+  // factorise every step); above 1e-3 the grids' velocities at Phi may disagree by more than a
+  // discretisation error. Zero (the user meaning "exact") is one of the former.
+  for (const double tolerance : {0.0, 1e-2}) {
+    json scene = scene_2d();
+    scene["scheme"]["coupling_tolerance"] = tolerance;
+    write_scene(scene);
+    expect_rejected("/scheme/coupling_tolerance", {"expected a number in [1e-13, 0.001]"});
+  }
+}
+
 /// scene_2d with the block made of mu(I) sand (Jop et al.'s glass beads).
 json scene_2d_mu_i() {
   json scene = scene_2d();

@@ -124,6 +124,13 @@ struct Scene {
   /// mass that reaches them vanishes (DESIGN.md section 4).
   double coupling_mass_threshold =
       1e-2;  ///< nodes lighter than this times the mean particle mass are inactive
+  /// Blending walls (mortar, one-way): the Phi coupling's multipliers are solved until the two
+  /// grids' interface velocities agree to this fraction of their size (or the multipliers are
+  /// this close to exact). They are impulses applied equal and opposite to the two grids, so
+  /// momentum is exact whatever their error, and the step's kinetic energy differs from the
+  /// exact projection's only to second order in it (docs/blending.md, "The coupling's
+  /// tolerance").
+  double coupling_tolerance = 1e-6;
   /// Enhanced walls: a boundary node whose effective mass after the standard grid is eliminated
   /// (K_SS = m^alpha_S - sum_I (m^{A,alpha}_IS)^2 / m^A_I) is below this fraction of its own
   /// mass is nearly a combination of standard-grid functions: its enhancement is dropped.
