@@ -1116,9 +1116,9 @@ void Solver<D>::layer_couple(bool remapped) {
       factor_solve(w.gap, w.lambda);
       if (w.schur_refine) {
         // CG preconditioned by the factorisation in hand (conjugate_refine(): to an error below
-        // the coupling's tolerance of x, or a residual below it of the interface terms); unconverged (the
-        // masses moved too far from the factorised step's), factorise this step's S. The
-        // products run through a and b, free by now.
+        // the coupling's tolerance of x, or a residual below it of the interface terms);
+        // unconverged (the masses moved too far from the factorised step's), factorise this
+        // step's S. The products run through a and b, free by now.
         auto apply = [&](const Block& x, Block& y) {
           a.noalias() = w.grid_active * x;
           a = w.inv_grid_mass.asDiagonal() * a;
