@@ -1131,7 +1131,8 @@ void Solver<D>::layer_couple(bool remapped) {
           y += w.schur_shift * x;
         };
         if (conjugate_refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
-                             w.update, w.search, w.search_product, scale, tolerance)) {  // sparse_pattern.hpp
+                             w.update, w.search, w.search_product, scale,
+                             tolerance)) {  // sparse_pattern.hpp
           w.refine_backoff = 0;
         } else {
           w.refine_wait = w.refine_backoff;

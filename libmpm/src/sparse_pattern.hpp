@@ -512,12 +512,12 @@ bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& pas
 /// the scene's scheme.coupling_tolerance): converged when the residual is below tolerance *
 /// scale, or when the preconditioned residual z = F^-1 r (the correction refinement would add,
 /// the error to within a factor 1 +- q) is below `tolerance` of x, and then z is added (the
-/// error left is about q |z|, as after refine()'s last pass). Unconverged after kMaxPasses, when z stops shrinking, or on a
-/// breakdown (p^T m p <= 0: m or F not positive definite). Unlike refine(), no forecast of the
-/// passes still needed: CG's pass-to-pass ratios are irregular (0.1 and then 0.01), and the
-/// forecast from them gave up on solves that converged in 4 or 5 passes (the debris scene's
-/// first 3 s: 4,483 -> 4,352 factorisations without it; the floor under MLS-MPM 0.104 -> 0.059 a
-/// step). `direction` and `product` are scratch of b's shape too.
+/// error left is about q |z|, as after refine()'s last pass). Unconverged after kMaxPasses, when z
+/// stops shrinking, or on a breakdown (p^T m p <= 0: m or F not positive definite). Unlike
+/// refine(), no forecast of the passes still needed: CG's pass-to-pass ratios are irregular (0.1
+/// and then 0.01), and the forecast from them gave up on solves that converged in 4 or 5 passes
+/// (the debris scene's first 3 s: 4,483 -> 4,352 factorisations without it; the floor under MLS-MPM
+/// 0.104 -> 0.059 a step). `direction` and `product` are scratch of b's shape too.
 template <class Rhs, class Apply, class Solve>
 bool conjugate_refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& passes,
                       Rhs& residual, Rhs& update, Rhs& direction, Rhs& product, double scale,
