@@ -335,7 +335,8 @@ void Solver<D>::setup_dual_walls() {
       w.layer_row_of.assign(n, -1);
     }
 
-    // Gamma nodes and the part each reports to (from the first wall facet that holds it).
+    // Gamma nodes and the part each reports to (from the last wall facet that holds it; a corner
+    // node's facets each report to their own: layer_walls()).
     std::vector<int> part(n, 0);
     for (Eigen::Index f = 0; f < w.layer->wall_facets.rows(); ++f) {
       for (Eigen::Index k = 0; k < w.layer->wall_facets.cols(); ++k) {
@@ -793,28 +794,34 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
       const int c0 = w.corner_first[i], c1 = w.corner_first[i + 1];
       // A separable corner holds the node against the facets its material touches (a foot
       // node lets the flow on the terrain slide on until it reaches the barrier).
+      // Each facet takes its own part's condition (a barrier's foot: the terrain's friction and
+      // the barrier's, weighted by how hard the node presses on each: corner_condition()).
       std::array<Vec<D>, kMaxCornerNormals> normals;
       std::array<int, kMaxCornerNormals> facet;
+      std::array<const WallCondition*, kMaxCornerNormals> conditions;
       int count = 0;
       for (int c = c0; c < c1; ++c) {
         if (w.spec->contact.separable && w.corner_gap[c] > 0.0) continue;
         normals[count] = w.corner_normals[c];
+        conditions[count] = &w.spec->condition(w.corner_part[c]);
         facet[count++] = c;
       }
       std::array<double, kMaxCornerNormals> lambda{};
-      v[n] = std::visit(
-          [&](const auto& condition) {
-            if constexpr (D > 1) {  // a 1D wall is a point: one normal
-              if (c1 > c0) {
-                return constrain_velocity_in_corner<D>(condition, w.spec->contact.separable,
-                                                       normals.data(), count, before,
-                                                       lambda.data());
-              }
-            }
-            return constrain_velocity<D>(condition, w.spec->contact.separable, w.wall_normal[i],
-                                         before);
-          },
-          w.spec->condition(part));
+      if constexpr (D > 1) {  // a 1D wall is a point: one normal
+        if (c1 > c0) {
+          v[n] = constrain_velocity_in_corner_of_parts<D>(conditions.data(),
+                                                          w.spec->contact.separable, normals.data(),
+                                                          count, before, lambda.data());
+        }
+      }
+      if (c1 == c0) {
+        v[n] = std::visit(
+            [&](const auto& condition) {
+              return constrain_velocity<D>(condition, w.spec->contact.separable, w.wall_normal[i],
+                                           before);
+            },
+            w.spec->condition(part));
+      }
       if (!record) continue;
       const Vec<D> change = v[n] - before;
       if (c1 == c0) {

@@ -109,6 +109,82 @@ TEST(CornerCondition, CreaseIn3DSlidesAlongItsLine) {
   EXPECT_LT(corner<3>(box, Vec<3>(-1.0, -2.0, -3.0)).norm(), kTol);
 }
 
+/// constrain_velocity_in_corner_of_parts() with one condition per facet.
+template <int D>
+Vec<D> parts_corner(const std::vector<Vec<D>>& n, const std::vector<WallCondition>& conditions,
+                    const Vec<D>& v, bool separable = true) {
+  std::vector<const WallCondition*> c;
+  for (const auto& condition : conditions) c.push_back(&condition);
+  std::vector<double> lambda(n.size());
+  return constrain_velocity_in_corner_of_parts<D>(c.data(), separable, n.data(),
+                                                  static_cast<int>(n.size()), v, lambda.data());
+}
+
+// A barrier's foot on terrain with other friction (the debris scene: terrain mu 0.25, barrier
+// 0.36): each facet's friction counts in proportion to its push; until 2026-12-06 the node took
+// the condition of its first facet's part, whichever it pressed on.
+TEST(CornerCondition, EachFacetsPartGivesItsOwnFriction) {
+  const std::vector<WallCondition> floor_and_wall = {Friction{0.2}, Friction{0.6}};
+  // Rising into the wall (2, 3): only the wall pushes (by 2), so the wall's mu = 0.6 takes 1.2
+  // of the sliding 3.
+  EXPECT_LT((parts_corner<2>(kFoot, floor_and_wall, Vec<2>(2.0, 3.0)) - Vec<2>(0.0, 1.8)).norm(),
+            kTol);
+  // Sliding back along the floor and into it (-2, -3): only the floor pushes (by 3), its mu =
+  // 0.2 takes 0.6 of the sliding 2.
+  EXPECT_LT((parts_corner<2>(kFoot, floor_and_wall, Vec<2>(-2.0, -3.0)) - Vec<2>(-1.4, 0.0)).norm(),
+            kTol);
+  // Along a crease in 3D, pressing on both: the terrain pushes by 0.1, the barrier by 0.2, so
+  // mu = (0.2 * 0.1 + 0.6 * 0.2) / 0.3 of the normal change |(0.2, 0, -0.1)| = sqrt(0.05) is
+  // taken from the speed 3 along the crease.
+  const std::vector<Vec<3>> crease = {Vec<3>(0.0, 0.0, 1.0), Vec<3>(-1.0, 0.0, 0.0)};
+  const std::vector<WallCondition> terrain_and_barrier = {Friction{0.2}, Friction{0.6}};
+  const double taken = (0.2 * 0.1 + 0.6 * 0.2) / 0.3 * std::sqrt(0.05);
+  EXPECT_LT((parts_corner<3>(crease, terrain_and_barrier, Vec<3>(0.2, 3.0, -0.1)) -
+             Vec<3>(0.0, 3.0 - taken, 0.0))
+                .norm(),
+            kTol);
+  // A slip facet adds no friction: pressing on both with the terrain frictionless, the
+  // barrier's 0.6 counts for its share of the pushes only.
+  const std::vector<WallCondition> slip_terrain = {Slip{}, Friction{0.6}};
+  const double barrier_only = 0.6 * 0.2 / 0.3 * std::sqrt(0.05);
+  EXPECT_LT((parts_corner<3>(crease, slip_terrain, Vec<3>(0.2, 3.0, -0.1)) -
+             Vec<3>(0.0, 3.0 - barrier_only, 0.0))
+                .norm(),
+            kTol);
+  // Both frictionless: slip along the crease.
+  EXPECT_LT(
+      (parts_corner<3>(crease, {Slip{}, Slip{}}, Vec<3>(0.2, 3.0, -0.1)) - Vec<3>(0.0, 3.0, 0.0))
+          .norm(),
+      kTol);
+  // A sticky barrier holds a node pressing on it, not one that only rests on the terrain.
+  const std::vector<WallCondition> sticky_wall = {Friction{0.2}, Sticky{}};
+  EXPECT_LT(parts_corner<2>(kFoot, sticky_wall, Vec<2>(2.0, 3.0)).norm(), kTol);
+  EXPECT_LT((parts_corner<2>(kFoot, sticky_wall, Vec<2>(-2.0, -3.0)) - Vec<2>(-1.4, 0.0)).norm(),
+            kTol);
+  // Moving away from both (separable): untouched whatever the conditions.
+  EXPECT_EQ(parts_corner<2>(kFoot, sticky_wall, Vec<2>(-1.0, 2.0)), Vec<2>(-1.0, 2.0));
+}
+
+// With one condition on every facet the facets' parts make no difference: the same velocity as
+// constrain_velocity_in_corner() with that condition, separable or bonded, in 2D and 3D.
+TEST(CornerCondition, OneConditionOnEveryFacetIsTheCornerCondition) {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (int trial = 0; trial < 200; ++trial) {
+    std::vector<Vec<3>> n;
+    for (int i = 0; i < 3; ++i) n.push_back(Vec<3>(0.8 * u(rng), 0.8 * u(rng), 1.0).normalized());
+    const Vec<3> v(u(rng), u(rng), u(rng));
+    for (const WallCondition& c :
+         {WallCondition(Slip{}), WallCondition(Sticky{}), WallCondition(Friction{0.3})}) {
+      for (const bool separable : {true, false}) {
+        const Vec<3> expected = corner<3>(n, v, separable, c);
+        const Vec<3> got = parts_corner<3>(n, {c, c, c}, v, separable);
+        EXPECT_LT((got - expected).norm(), 1e-12 * (1.0 + v.norm()));
+      }
+    }
+  }
+}
+
 // Against the definition: the result enters no facet, and no velocity that enters none is closer
 // to v (checked on a fine sample of the cone's boundary and interior); with one normal it is
 // constrain_velocity().

@@ -6,6 +6,7 @@
 #include <Eigen/QR>
 #include <algorithm>
 #include <bit>
+#include <cmath>
 #include <string>
 #include <variant>
 
@@ -119,6 +120,29 @@ requires(D > 1) Vec<D> project_to_cone(const Vec<D>* n, int count, const Vec<D>&
   return Vec<D>::Zero();
 }
 
+/// The velocity a node at a concave corner or crease may keep before friction, with the facets'
+/// distinct unit normals n[0 .. count), count <= kMaxCornerNormals: separable, the nearest
+/// velocity entering no facet (v itself if it enters none); bonded, the part of v along no
+/// facet's normal (the node slides only along every facet at once). lambda (count entries, if
+/// given) receives the normal change of velocity each facet makes, l_i along n_i.
+template <int D>
+requires(D > 1) Vec<D> corner_slide(bool separable, const Vec<D>* n, int count, const Vec<D>& v,
+                                    double* lambda) {
+  if (separable) return project_to_cone<D>(n, count, v, lambda);
+  // The part of v in no facet's normal direction (orthogonal to their span).
+  Eigen::Matrix<double, D, Eigen::Dynamic, 0, D, kMaxCornerNormals> normals(D, count);
+  for (int i = 0; i < count; ++i) normals.col(i) = n[i];
+  const Eigen::ColPivHouseholderQR<decltype(normals)> qr(normals);
+  const auto q = qr.householderQ() * Mat<D>::Identity();
+  Vec<D> u = v;
+  for (Eigen::Index r = 0; r < qr.rank(); ++r) u -= q.col(r).dot(v) * q.col(r);
+  if (lambda) {
+    const Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxCornerNormals, 1> l = qr.solve(u - v);
+    std::copy(l.data(), l.data() + count, lambda);
+  }
+  return u;
+}
+
 /// constrain_velocity() at a node where wall facets meet at a concave corner or crease, with
 /// the facets' distinct unit normals n[0 .. count), count <= kMaxCornerNormals: the node may move
 /// along none of them into the wall. Separable: free while v enters none; otherwise v is projected
@@ -132,24 +156,50 @@ template <int D, class Condition>
 requires(D > 1) Vec<D> constrain_velocity_in_corner(const Condition& condition, bool separable,
                                                     const Vec<D>* n, int count, const Vec<D>& v,
                                                     double* lambda = nullptr) {
-  Vec<D> u;
-  if (separable) {
-    u = project_to_cone<D>(n, count, v, lambda);
-    if (u == v) return v;  // enters no facet: no contact force
-  } else {
-    // The part of v in no facet's normal direction (orthogonal to their span).
-    Eigen::Matrix<double, D, Eigen::Dynamic, 0, D, kMaxCornerNormals> normals(D, count);
-    for (int i = 0; i < count; ++i) normals.col(i) = n[i];
-    const Eigen::ColPivHouseholderQR<decltype(normals)> qr(normals);
-    const auto q = qr.householderQ() * Mat<D>::Identity();
-    u = v;
-    for (Eigen::Index r = 0; r < qr.rank(); ++r) u -= q.col(r).dot(v) * q.col(r);
-    if (lambda) {
-      const Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxCornerNormals, 1> l = qr.solve(u - v);
-      std::copy(l.data(), l.data() + count, lambda);
+  const Vec<D> u = corner_slide<D>(separable, n, count, v, lambda);
+  if (separable && u == v) return v;  // enters no facet: no contact force
+  return apply_condition<D>(condition, u, (u - v).norm());
+}
+
+/// The condition at a corner whose facets belong to parts with conditions of their own (a
+/// barrier's foot on the terrain, each with its friction), given each facet's normal push
+/// lambda[i]: sticky if a facet that pushes is sticky (its material does not slide along it, and
+/// the corner's only free direction runs along it); otherwise Coulomb friction whose coefficient
+/// is the facets' own (slip: 0) weighted by their pushes |lambda_i|, so that a facet the node
+/// does not press on adds no friction, and equal coefficients give that coefficient back. No
+/// facet pushing (the node already slides along them all): the first facet's condition, which
+/// then has nothing to act on.
+inline WallCondition corner_condition(const WallCondition* const* conditions, const double* lambda,
+                                      int count) {
+  double pushes = 0.0, weighted = 0.0;
+  bool any_friction = false;
+  for (int i = 0; i < count; ++i) {
+    const double push = std::abs(lambda[i]);
+    if (push == 0.0) continue;
+    if (std::holds_alternative<Sticky>(*conditions[i])) return Sticky{};
+    pushes += push;
+    if (const auto* f = std::get_if<Friction>(conditions[i])) {
+      weighted += f->mu * push;
+      any_friction = true;
     }
   }
-  return apply_condition<D>(condition, u, (u - v).norm());
+  if (pushes == 0.0) return *conditions[0];
+  if (!any_friction) return Slip{};
+  return Friction{weighted / pushes};
+}
+
+/// constrain_velocity_in_corner() where each facet has its own part's condition (conditions[i]
+/// for n[i]), combined by corner_condition() from the facets' pushes. lambda as there (required).
+template <int D>
+requires(D > 1) Vec<D> constrain_velocity_in_corner_of_parts(const WallCondition* const* conditions,
+                                                             bool separable, const Vec<D>* n,
+                                                             int count, const Vec<D>& v,
+                                                             double* lambda) {
+  const Vec<D> u = corner_slide<D>(separable, n, count, v, lambda);
+  if (separable && u == v) return v;  // enters no facet: no contact force
+  return std::visit(
+      [&](const auto& condition) { return apply_condition<D>(condition, u, (u - v).norm()); },
+      corner_condition(conditions, lambda, count));
 }
 
 }  // namespace mpm
