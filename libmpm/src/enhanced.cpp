@@ -658,55 +658,14 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
       const Block& g = gaps();
       bool changed = false;
       for (Eigen::Index i = 0; i < k; ++i) {
-        auto& s = state[static_cast<std::size_t>(i)];
-        const Vec<D>& n = e.normal[static_cast<std::size_t>(i)];
-        const Vec<D> total = (impulse.row(i) + load.row(i)).transpose();
-        const double jn = total.dot(n);
-        if (s == Contact::off) {
-          if (contact.separable && g.row(i).dot(n.transpose()) < 0.0) {
-            if (releases[static_cast<std::size_t>(i)] < 2) {
-              s = on_of[static_cast<std::size_t>(i)];
-              changed = true;
-            } else {
-              ++e.kept_released;
-            }
-          }
-          continue;
-        }
-        if (contact.separable && jn < 0.0) {
-          s = Contact::off;
-          ++releases[static_cast<std::size_t>(i)];
-          load.row(i).setZero();
-          changed = true;
-          continue;
-        }
-        const double mu_f = mu_of[static_cast<std::size_t>(i)];
-        if (mu_f <= 0.0) continue;
-        const double limit = mu_f * std::abs(jn);
-        if (s == Contact::stick) {
-          const Vec<D> jt = total - jn * n;
-          if (jt.norm() > limit * (1.0 + 1e-9)) {
-            s = Contact::slip;
-            load.row(i) = (limit / jt.norm() * jt).transpose();
-            changed = true;
-          }
-        } else {
-          // Slip: the friction impulse opposes the sliding; if the load reversed the sliding,
-          // the multiplier sticks; otherwise follow the new normal impulse.
-          const Vec<D> dir = load.row(i).transpose().normalized();
-          const Vec<D> slide = g.row(i).transpose() - g.row(i).dot(n.transpose()) * n;
-          if (slide.dot(dir) > 0.0) {
-            s = Contact::stick;
-            load.row(i).setZero();
-            changed = true;
-          } else {
-            const Vec<D> updated = limit * dir;
-            if ((updated - load.row(i).transpose()).norm() > 1e-9 * (limit + 1e-300)) {
-              load.row(i) = updated.transpose();
-              changed = true;
-            }
-          }
-        }
+        const auto u = static_cast<std::size_t>(i);
+        Vec<D> friction = load.row(i).transpose();
+        bool kept = false;
+        changed |= update_contact<D>(
+            state[u], releases[u], friction, on_of[u], mu_of[u], contact.separable, e.normal[u],
+            Vec<D>((impulse.row(i) + load.row(i)).transpose()), Vec<D>(g.row(i).transpose()), kept);
+        load.row(i) = friction.transpose();
+        if (kept) ++e.kept_released;
       }
       if (!changed) {
         settled = true;

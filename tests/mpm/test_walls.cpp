@@ -1,7 +1,8 @@
 // Wall conditions on a node's velocity (walls.hpp) against exact answers: at a concave corner or
 // crease the node may enter none of its facets, and the velocity is the nearest one that does
 // not (Euclidean projection onto the cone of the facets' normals), with Coulomb friction taking
-// at most mu times that projection's impulse from the sliding speed.
+// at most mu times that projection's impulse from the sliding speed. And Enhanced's contact
+// active set (update_contact()), one multiplier's pass at a time.
 
 #include <gtest/gtest.h>
 
@@ -11,6 +12,7 @@
 #include <random>
 #include <vector>
 
+#include "mpm/dual_grid.hpp"
 #include "mpm/walls.hpp"
 
 namespace mpm {
@@ -221,6 +223,96 @@ TEST(CornerCondition, IsTheNearestVelocityEnteringNoFacet) {
       }
     }
   }
+}
+
+// Enhanced's active-set loop, one multiplier at a time (update_contact(), mpm/dual_grid.hpp):
+// a floor with normal +y, the multiplier's impulse `total` and the coupled field's velocity
+// `gap` at it, as one pass of the loop leaves them.
+const Vec<2> kUp(0.0, 1.0);
+
+struct Multiplier {
+  Contact state = Contact::stick;
+  unsigned char releases = 0;
+  Vec<2> load = Vec<2>::Zero();
+  bool kept_released = false;
+  /// One pass with this impulse and gap; whether the loop must solve again.
+  bool pass(const Vec<2>& total, const Vec<2>& gap, double mu = 0.4, bool separable = true,
+            Contact on = Contact::stick) {
+    return update_contact<2>(state, releases, load, on, mu, separable, kUp, total, gap,
+                             kept_released);
+  }
+};
+
+TEST(ContactActiveSet, AMultiplierReleasedTwiceInAStepStaysReleased) {
+  // Rough contact: held, the multiplier pulls; released, the field closes its gap. Without a
+  // limit the loop would alternate until its passes ran out, factorising every time.
+  Multiplier m;
+  const Vec<2> pulling(0.0, -1.0), closing(0.0, -0.5);
+  EXPECT_TRUE(m.pass(pulling, Vec<2>::Zero()));  // released (1)
+  EXPECT_EQ(m.state, Contact::off);
+  EXPECT_TRUE(m.pass(Vec<2>::Zero(), closing));  // held again
+  EXPECT_EQ(m.state, Contact::stick);
+  EXPECT_TRUE(m.pass(pulling, Vec<2>::Zero()));  // released (2)
+  EXPECT_EQ(m.releases, 2);
+  // Its gap closes again: it stays released, the loop is told nothing changed (and settles).
+  EXPECT_FALSE(m.pass(Vec<2>::Zero(), closing));
+  EXPECT_EQ(m.state, Contact::off);
+  EXPECT_TRUE(m.kept_released);
+  // An opening gap leaves a released multiplier alone, and is not a kept release.
+  EXPECT_FALSE(m.pass(Vec<2>::Zero(), Vec<2>(0.0, 0.5)));
+  EXPECT_FALSE(m.kept_released);
+  // A fresh step (releases reset by the caller) takes it back.
+  m.releases = 0;
+  EXPECT_TRUE(m.pass(Vec<2>::Zero(), closing));
+  EXPECT_EQ(m.state, Contact::stick);
+}
+
+TEST(ContactActiveSet, ABondedWallHoldsAPullingMultiplier) {
+  Multiplier m;
+  EXPECT_FALSE(m.pass(Vec<2>(0.0, -1.0), Vec<2>::Zero(), 0.4, false));
+  EXPECT_EQ(m.state, Contact::stick);
+  EXPECT_EQ(m.releases, 0);
+}
+
+TEST(ContactActiveSet, StickSlipsBeyondMuTimesTheNormalImpulse) {
+  // Pushed by 2 along +y: mu = 0.4 holds a tangential impulse up to 0.8.
+  Multiplier m;
+  EXPECT_FALSE(m.pass(Vec<2>(0.8, 2.0), Vec<2>::Zero()));  // on the cone: sticks
+  EXPECT_EQ(m.state, Contact::stick);
+  EXPECT_FALSE(m.pass(Vec<2>(0.8 * (1.0 + 5e-10), 2.0), Vec<2>::Zero()));  // within 1e-9
+  EXPECT_TRUE(m.pass(Vec<2>(-1.5, 2.0), Vec<2>::Zero()));
+  EXPECT_EQ(m.state, Contact::slip);
+  // The friction load: the held tangential impulse's direction, capped at mu |j_n| = 0.8.
+  EXPECT_LT((m.load - Vec<2>(-0.8, 0.0)).norm(), kTol);
+}
+
+TEST(ContactActiveSet, SlipFollowsTheNormalImpulseAndSticksWhenTheSlidingReverses) {
+  Multiplier m;
+  m.state = Contact::slip;
+  m.load = Vec<2>(-0.8, 0.0);  // against sliding along +x
+  // Still sliding along +x (the load opposes it), pushed harder (3): the load follows, 1.2.
+  EXPECT_TRUE(m.pass(Vec<2>(-0.8, 3.0), Vec<2>(0.5, 0.0)));
+  EXPECT_EQ(m.state, Contact::slip);
+  EXPECT_LT((m.load - Vec<2>(-1.2, 0.0)).norm(), kTol);
+  // The same push again: nothing to change.
+  EXPECT_FALSE(m.pass(Vec<2>(-1.2, 3.0), Vec<2>(0.5, 0.0)));
+  // The load reversed the sliding (the gap now moves along the load): the multiplier sticks
+  // and the held impulse takes over from the load.
+  EXPECT_TRUE(m.pass(Vec<2>(-1.2, 3.0), Vec<2>(-0.1, 0.0)));
+  EXPECT_EQ(m.state, Contact::stick);
+  EXPECT_EQ(m.load, Vec<2>::Zero());
+}
+
+TEST(ContactActiveSet, FrictionlessAndStickyMultipliersKeepTheirState) {
+  // mu 0: a pushing multiplier stays in normal contact whatever its tangential impulse; a
+  // sticky one (no friction coefficient, held in stick) stays stuck.
+  Multiplier frictionless;
+  frictionless.state = Contact::normal;
+  EXPECT_FALSE(frictionless.pass(Vec<2>(5.0, 1.0), Vec<2>(1.0, 0.0), 0.0, true, Contact::normal));
+  EXPECT_EQ(frictionless.state, Contact::normal);
+  Multiplier sticky;
+  EXPECT_FALSE(sticky.pass(Vec<2>(5.0, 1.0), Vec<2>(1.0, 0.0), 0.0));
+  EXPECT_EQ(sticky.state, Contact::stick);
 }
 
 }  // namespace

@@ -7,6 +7,7 @@
 #include <Eigen/SparseCore>
 #include <array>
 #include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <memory>
 #include <stdexcept>
@@ -167,6 +168,71 @@ using NodeBlock =
 
 /// Contact state of one Gamma multiplier in Enhanced's active-set loop.
 enum class Contact : unsigned char { off, normal, stick, slip };
+
+/// One pass of Enhanced's active-set loop (enhanced_solve()) for one Gamma multiplier, given
+/// this pass's solve: `total` its impulse (the held part and the friction `load`), `gap` the
+/// velocity the coupled field has at it, `normal` the wall's normal into the material. `state`
+/// becomes:
+/// - off -> `on` (its state in contact) where a separable wall's gap closes (gap . n < 0),
+///   unless the multiplier was released twice already in this step (`releases`): it then
+///   stays off and `kept_released` is set. On rough contact one or two multipliers alternated
+///   between pulling when held and closing their gap when released, each pass a new
+///   factorisation, until the loop's passes ran out (docs/performance.md, 2026-12-05);
+/// - held -> off where a separable wall pulls (total . n < 0); `releases` counts it and the
+///   friction load is dropped;
+/// - stick -> slip where the tangential impulse exceeds mu |total . n| (by more than 1e-9 of
+///   it), with the load mu |total . n| against the tangential impulse;
+/// - slip -> stick where the load reversed the sliding (the gap's tangential part along the
+///   load); otherwise the load follows the new normal impulse (changed if by more than 1e-9).
+/// Frictionless (mu 0) and sticky multipliers keep their held state. Returns whether the
+/// state or the load changed (the loop solves again if any did).
+template <int D>
+bool update_contact(Contact& state, unsigned char& releases, Vec<D>& load, Contact on, double mu,
+                    bool separable, const Vec<D>& normal, const Vec<D>& total, const Vec<D>& gap,
+                    bool& kept_released) {
+  kept_released = false;
+  if (state == Contact::off) {
+    if (separable && gap.dot(normal) < 0.0) {
+      if (releases < 2) {
+        state = on;
+        return true;
+      }
+      kept_released = true;
+    }
+    return false;
+  }
+  const double jn = total.dot(normal);
+  if (separable && jn < 0.0) {
+    state = Contact::off;
+    ++releases;
+    load.setZero();
+    return true;
+  }
+  if (mu <= 0.0) return false;
+  const double limit = mu * std::abs(jn);
+  if (state == Contact::stick) {
+    const Vec<D> jt = total - jn * normal;
+    if (jt.norm() > limit * (1.0 + 1e-9)) {
+      state = Contact::slip;
+      load = limit / jt.norm() * jt;
+      return true;
+    }
+    return false;
+  }
+  const Vec<D> dir = load.normalized();
+  const Vec<D> slide = gap - gap.dot(normal) * normal;
+  if (slide.dot(dir) > 0.0) {
+    state = Contact::stick;
+    load.setZero();
+    return true;
+  }
+  const Vec<D> updated = limit * dir;
+  if ((updated - load).norm() > 1e-9 * (limit + 1e-300)) {
+    load = updated;
+    return true;
+  }
+  return false;
+}
 
 /// Per-step state of the Enhanced velocity field method (enhanced.cpp). Compact indices: the
 /// standard-grid nodes the layer's particles reach ("near" rows), the free boundary-grid nodes
