@@ -124,7 +124,7 @@ Vec<D> parts_corner(const std::vector<Vec<D>>& n, const std::vector<WallConditio
 
 // A barrier's foot on terrain with other friction (the debris scene: terrain mu 0.25, barrier
 // 0.36): each facet's friction counts in proportion to its push; until 2026-12-06 the node took
-// the condition of its first facet's part, whichever it pressed on.
+// the condition of one facet's part (the last in the mesh's order), whichever it pressed on.
 TEST(CornerCondition, EachFacetsPartGivesItsOwnFriction) {
   const std::vector<WallCondition> floor_and_wall = {Friction{0.2}, Friction{0.6}};
   // Rising into the wall (2, 3): only the wall pushes (by 2), so the wall's mu = 0.6 takes 1.2
@@ -168,7 +168,8 @@ TEST(CornerCondition, EachFacetsPartGivesItsOwnFriction) {
 }
 
 // With one condition on every facet the facets' parts make no difference: the same velocity as
-// constrain_velocity_in_corner() with that condition, separable or bonded, in 2D and 3D.
+// constrain_velocity_in_corner() with that condition, separable or bonded (random 3D corners of
+// three facets).
 TEST(CornerCondition, OneConditionOnEveryFacetIsTheCornerCondition) {
   std::mt19937 rng(11);
   std::uniform_real_distribution<double> u(-1.0, 1.0);

@@ -181,7 +181,7 @@ enum class Contact : unsigned char { off, normal, stick, slip };
 /// - held -> off where a separable wall pulls (total . n < 0); `releases` counts it and the
 ///   friction load is dropped;
 /// - stick -> slip where the tangential impulse exceeds mu |total . n| (by more than 1e-9 of
-///   it), with the load mu |total . n| against the tangential impulse;
+///   it), the load then that impulse's direction capped at mu |total . n|;
 /// - slip -> stick where the load reversed the sliding (the gap's tangential part along the
 ///   load); otherwise the load follows the new normal impulse (changed if by more than 1e-9).
 /// Frictionless (mu 0) and sticky multipliers keep their held state. Returns whether the
