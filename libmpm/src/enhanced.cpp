@@ -517,9 +517,9 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         }
         e.schur_ready = true;
       }
-      if (ns > 0 &&
-          !refined_solve(*e.schur_solver, e.schur, e.schur_base, e.schur_pattern, e.schur_refine,
-                         rhs_alpha, vs, e.refinements, e.factorizations, e.schur_work)) {
+      if (ns > 0 && !refined_solve(*e.schur_solver, e.schur, e.schur_base, e.schur_pattern,
+                                   e.schur_refine, rhs_alpha, vs, e.refinements, e.factorizations,
+                                   e.schur_work, scene_.coupling_tolerance)) {
         return false;
       }
     } else {
@@ -577,8 +577,36 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         e.kkt_alpha_cols = e.alpha_cols;
         return e.kkt_matrix;
       };
+      // Refinement measures x's error as velocities: an impulse unknown counts as the velocity
+      // it gives the standard grid's nodes (|M_A^-1 R^A n| times it), so that the tolerance is
+      // one fraction of the velocities for both kinds of unknown, whatever the node masses.
+      Eigen::VectorXd& weight = e.impulse_weight;
+      weight.resize(nc);
+      for (Eigen::Index c = 0; c < nc; ++c) {
+        double sum = 0.0;
+        for (Sparse::InnerIterator it(e.grid_r, rows[c].first); it; ++it) {
+          const double v = it.value() * e.inv_mass[it.row()];
+          sum += v * v;
+        }
+        weight[c] = rows[c].second.norm() * std::sqrt(sum);
+      }
+      // A row that reaches no standard-grid node (its impulse acts on the boundary grid alone)
+      // takes the others' mean, so that no unknown goes unmeasured.
+      const double mean = nc > 0 ? weight.sum() / static_cast<double>(nc) : 0.0;
+      for (Eigen::Index c = 0; c < nc; ++c) {
+        if (!(weight[c] > 0.0)) weight[c] = mean > 0.0 ? mean : 1.0;
+      }
+      const auto as_velocities = [&](const Eigen::VectorXd& y) {
+        double sum = y.head(nv).squaredNorm();
+        for (Eigen::Index c = 0; c < nc; ++c) {
+          const double v = weight[c] * y[nv + c];
+          sum += v * v;
+        }
+        return std::sqrt(sum);
+      };
       if (!refined_solve(*e.kkt_solver, apply_kkt, formed, e.kkt_base, e.kkt_pattern, e.kkt_refine,
-                         rhs, x, e.refinements, e.factorizations, e.kkt_work)) {
+                         rhs, x, e.refinements, e.factorizations, e.kkt_work,
+                         scene_.coupling_tolerance, as_velocities)) {
         return false;
       }
       for (Eigen::Index c = 0; c < ns; ++c) {

@@ -471,12 +471,22 @@ constexpr double kRefineTolerance = 1e-10;
 /// whole, or in a linear field both grids carry exactly: the falling block of the floor
 /// benchmark had a gap of 1e-15 of the interface terms) the test on x alone chased the
 /// multipliers' round-off, three passes per solve; this one accepts the first solve.
-template <class Rhs, class Apply, class Solve>
+/// The Euclidean norm: refine()'s measure of x and its updates unless the caller gives another
+/// (Enhanced's contact system weighs its impulses into velocities: unknowns of other units).
+struct EuclideanNorm {
+  template <class V>
+  double operator()(const V& v) const {
+    return v.norm();
+  }
+};
+
+template <class Rhs, class Apply, class Solve, class Norm = EuclideanNorm>
 bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& passes, Rhs& residual,
-            Rhs& update, double scale = 0.0) {
+            Rhs& update, double scale = 0.0, double tolerance = kRefineTolerance,
+            const Norm& norm = {}) {
   constexpr int kMaxPasses = 6;
-  constexpr double kTolerance = kRefineTolerance;
-  double previous = x.norm();
+  const double kTolerance = tolerance;
+  double previous = norm(x);
   double q = 0.0;  // the contraction rate: the largest ratio of successive updates seen
   for (int pass = 1;; ++pass) {
     apply(x, residual);
@@ -485,7 +495,7 @@ bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& pas
     solve(residual, update);
     x += update;
     ++passes;
-    const double step = update.norm(), size = x.norm();
+    const double step = norm(update), size = norm(x);
     if (step <= kTolerance * size) return true;
     const double rate = step / previous;
     previous = step;
@@ -588,15 +598,17 @@ bool conjugate_refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::s
 /// (a checkpoint saves it, so a resumed run refines against the same one). `passes` and
 /// `factorizations` count the work done (reported by the benchmarks). Allocates only to
 /// factorise (`w` is the caller's scratch).
-template <class Rhs, class Apply, class Form>
+template <class Rhs, class Apply, class Form, class Norm = EuclideanNorm>
 bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
                    Eigen::SparseMatrix<double>& base, std::size_t& pattern, bool& refine,
                    const Rhs& b, Rhs& x, std::size_t& passes, std::size_t& factorizations,
-                   SolveWork<Rhs>& w) {
+                   SolveWork<Rhs>& w, double tolerance = kRefineTolerance, const Norm& norm = {}) {
   ldlt_solve(solver, b, x, w.work);
   if (!refine) return true;
   const auto factor = [&](const Rhs& r, Rhs& out) { ldlt_solve(solver, r, out, w.work); };
-  if (mpm::refine(b, x, apply, factor, passes, w.residual, w.update)) return true;
+  if (mpm::refine(b, x, apply, factor, passes, w.residual, w.update, 0.0, tolerance, norm)) {
+    return true;
+  }
   const Eigen::SparseMatrix<double>& m = form();
   if (const std::size_t hash = pattern_hash(m); hash != pattern) {
     solver.analyzePattern(m);
@@ -616,11 +628,11 @@ template <class Rhs>
 bool refined_solve(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
                    Eigen::SparseMatrix<double>& base, std::size_t& pattern, bool& refine,
                    const Rhs& b, Rhs& x, std::size_t& passes, std::size_t& factorizations,
-                   SolveWork<Rhs>& w) {
+                   SolveWork<Rhs>& w, double tolerance = kRefineTolerance) {
   return refined_solve(
       solver, [&](const Rhs& y, Rhs& out) { out.noalias() = m * y; },
       [&]() -> const Eigen::SparseMatrix<double>& { return m; }, base, pattern, refine, b, x,
-      passes, factorizations, w);
+      passes, factorizations, w, tolerance);
 }
 
 /// Factorises m into `solver` unless `solver` holds a factorisation of an earlier matrix with the

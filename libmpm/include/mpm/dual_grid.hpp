@@ -322,6 +322,8 @@ struct EnhancedState {
   std::vector<std::pair<int, Vec<D>>> rows;  ///< held directions: (multiplier, direction)
   std::vector<int> signature, row_first;
   Eigen::VectorXd rhs, solution;
+  /// Each held row's velocity per unit impulse, |M_A^-1 R^A n| (refinement's measure of x).
+  Eigen::VectorXd impulse_weight;
   SolveWork<Block> schur_work;
   SolveWork<Eigen::VectorXd> kkt_work;
 };

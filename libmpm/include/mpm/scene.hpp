@@ -129,7 +129,9 @@ struct Scene {
   /// this close to exact). They are impulses applied equal and opposite to the two grids, so
   /// momentum is exact whatever their error, and the step's kinetic energy differs from the
   /// exact projection's only to second order in it (docs/blending.md, "The coupling's
-  /// tolerance").
+  /// tolerance"). Enhanced walls: their contact system, refined against an earlier
+  /// factorisation, to this fraction of its unknowns' size, the impulses counted as the
+  /// velocities they give the standard grid (docs/enhanced.md).
   double coupling_tolerance = 1e-6;
   /// Enhanced walls: a boundary node whose effective mass after the standard grid is eliminated
   /// (K_SS = m^alpha_S - sum_I (m^{A,alpha}_IS)^2 / m^A_I) is below this fraction of its own
