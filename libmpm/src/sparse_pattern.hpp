@@ -448,6 +448,15 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
 /// refine()'s relative tolerance (below).
 constexpr double kRefineTolerance = 1e-10;
 
+/// The Euclidean norm: refine()'s measure of x and its updates unless the caller gives another
+/// (Enhanced's contact system weighs its impulses into velocities: unknowns of other units).
+struct EuclideanNorm {
+  template <class V>
+  double operator()(const V& v) const {
+    return v.norm();
+  }
+};
+
 /// Refinement passes x += solve(b - apply(x)) from the x in hand: `apply(x, y)` sets y to this
 /// step's matrix times x and `solve(r, dx)` applies the factorisation in hand (an earlier
 /// step's) to r; `residual` and `update` are scratch of b's shape. Each pass
@@ -457,8 +466,10 @@ constexpr double kRefineTolerance = 1e-10;
 /// refinement stops as soon as the rate says it would need more than kMaxPasses in all (with a
 /// fixed 20 passes, the debris scene spent 70% of its run refining and then factorising anyway).
 /// True if converged: the error left after a pass, at most q / (1 - q) times its update for a
-/// contraction by q, is below kTolerance of x. Bounding the error left rather than the update
-/// just made saves the pass that only confirms it. kTolerance is 1e-10: the multipliers are
+/// contraction by q, is below `tolerance` of x (x and its updates measured by `norm`).
+/// Bounding the error left rather than the update just made saves the pass that only confirms
+/// it. The dual-grid walls pass the scene's scheme.coupling_tolerance (default 1e-6); the
+/// default here, kRefineTolerance = 1e-10, was theirs until 2026-12-06: the multipliers are
 /// impulses, applied equal and opposite to the two grids whatever their error (momentum stays
 /// exact), so an error of 1e-10 of them leaves a velocity jump across Phi of that order of the
 /// interface's velocities, far below any discretisation error; solving to round-off (1e-13) took
@@ -471,15 +482,6 @@ constexpr double kRefineTolerance = 1e-10;
 /// whole, or in a linear field both grids carry exactly: the falling block of the floor
 /// benchmark had a gap of 1e-15 of the interface terms) the test on x alone chased the
 /// multipliers' round-off, three passes per solve; this one accepts the first solve.
-/// The Euclidean norm: refine()'s measure of x and its updates unless the caller gives another
-/// (Enhanced's contact system weighs its impulses into velocities: unknowns of other units).
-struct EuclideanNorm {
-  template <class V>
-  double operator()(const V& v) const {
-    return v.norm();
-  }
-};
-
 template <class Rhs, class Apply, class Solve, class Norm = EuclideanNorm>
 bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& passes, Rhs& residual,
             Rhs& update, double scale = 0.0, double tolerance = kRefineTolerance,
