@@ -807,13 +807,6 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
         facet[count++] = c;
       }
       std::array<double, kMaxCornerNormals> lambda{};
-      if constexpr (D > 1) {  // a 1D wall is a point: one normal
-        if (c1 > c0) {
-          v[n] = constrain_velocity_in_corner_of_parts<D>(conditions.data(),
-                                                          w.spec->contact.separable, normals.data(),
-                                                          count, before, lambda.data());
-        }
-      }
       if (c1 == c0) {
         v[n] = std::visit(
             [&](const auto& condition) {
@@ -821,6 +814,10 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
                                            before);
             },
             w.spec->condition(part));
+      } else if constexpr (D > 1) {  // a 1D wall is a point: no corners
+        v[n] =
+            constrain_velocity_in_corner_of_parts<D>(conditions.data(), w.spec->contact.separable,
+                                                     normals.data(), count, before, lambda.data());
       }
       if (!record) continue;
       const Vec<D> change = v[n] - before;

@@ -580,9 +580,10 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
       // Refinement measures x's error as velocities: an impulse unknown counts as the velocity
       // it gives the standard grid's nodes (|M_A^-1 R^A n| times it), so that the tolerance is
       // one fraction of the velocities for both kinds of unknown, whatever the node masses.
+      // Only refinement against an earlier factorisation reads the weights.
       Eigen::VectorXd& weight = e.impulse_weight;
-      weight.resize(nc);
-      for (Eigen::Index c = 0; c < nc; ++c) {
+      weight.resize(e.kkt_refine ? nc : 0);
+      for (Eigen::Index c = 0; c < weight.size(); ++c) {
         double sum = 0.0;
         for (Sparse::InnerIterator it(e.grid_r, rows[c].first); it; ++it) {
           const double v = it.value() * e.inv_mass[it.row()];
@@ -592,8 +593,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
       }
       // A row that reaches no standard-grid node (its impulse acts on the boundary grid alone)
       // takes the others' mean, so that no unknown goes unmeasured.
-      const double mean = nc > 0 ? weight.sum() / static_cast<double>(nc) : 0.0;
-      for (Eigen::Index c = 0; c < nc; ++c) {
+      const double mean = weight.size() > 0 ? weight.mean() : 0.0;
+      for (Eigen::Index c = 0; c < weight.size(); ++c) {
         if (!(weight[c] > 0.0)) weight[c] = mean > 0.0 ? mean : 1.0;
       }
       const auto as_velocities = [&](const Eigen::VectorXd& y) {

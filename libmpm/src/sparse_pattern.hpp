@@ -476,7 +476,7 @@ struct EuclideanNorm {
 /// one more pass per solve on the floor scene (mortar coupling 7.7-8.6 -> 6.6-6.9 ms at 1e-10;
 /// docs/performance.md). The caller factorises when this returns false.
 /// A positive `scale` adds a test on the residual itself, before each pass: converged as soon as
-/// |b - m x| <= kTolerance * scale. The Phi coupling passes the size of the two interface terms
+/// |b - m x| <= tolerance * scale. The Phi coupling passes the size of the two interface terms
 /// b is the difference of (R^A^T v^A and R^alpha^T v^alpha): the constraint then holds to 1e-10
 /// of the velocities it joins. Where the two grids nearly agree already (material moving as a
 /// whole, or in a linear field both grids carry exactly: the falling block of the floor
@@ -487,27 +487,26 @@ bool refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::size_t& pas
             Rhs& update, double scale = 0.0, double tolerance = kRefineTolerance,
             const Norm& norm = {}) {
   constexpr int kMaxPasses = 6;
-  const double kTolerance = tolerance;
   double previous = norm(x);
   double q = 0.0;  // the contraction rate: the largest ratio of successive updates seen
   for (int pass = 1;; ++pass) {
     apply(x, residual);
     residual = b - residual;
-    if (residual.norm() <= kTolerance * scale) return true;
+    if (residual.norm() <= tolerance * scale) return true;
     solve(residual, update);
     x += update;
     ++passes;
     const double step = norm(update), size = norm(x);
-    if (step <= kTolerance * size) return true;
+    if (step <= tolerance * size) return true;
     const double rate = step / previous;
     previous = step;
     if (!(rate < 0.5)) return false;  // stalled (or not a number)
     q = std::max(q, rate);
     // The first ratio compares the update with x itself, not with an update, and can fall short
     // of the rate: the error bound waits for the second.
-    if (pass >= 2 && q / (1.0 - q) * step <= kTolerance * size) return true;
+    if (pass >= 2 && q / (1.0 - q) * step <= tolerance * size) return true;
     if (pass >= kMaxPasses) return false;
-    if (pass + std::log(kTolerance * size / step) / std::log(q) > kMaxPasses) return false;
+    if (pass + std::log(tolerance * size / step) / std::log(q) > kMaxPasses) return false;
   }
 }
 
