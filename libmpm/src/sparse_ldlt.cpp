@@ -2,6 +2,7 @@
 // run its triangular solves on two threads (SubtreeSplit, mpm/dual_grid.hpp).
 
 #include <algorithm>
+#include <array>
 #include <cstdint>
 #include <queue>
 #include <utility>
@@ -142,6 +143,41 @@ SubtreeSplit split_subtrees(const Eigen::SparseMatrix<double>& l) {
   }
   split.parallel = true;
   return split;
+}
+
+ColumnRuns column_runs(const Eigen::SparseMatrix<double>& l, const SubtreeSplit& split) {
+  ColumnRuns runs;
+  const auto n = static_cast<int>(l.cols());
+  const int* outer = l.outerIndexPtr();
+  const int* inner = l.innerIndexPtr();
+  // continues[j]: column j + 1 continues column j's run. Column j's rows are j + 1 and then
+  // exactly column j + 1's (rows increase in a column, so all lie below both diagonals).
+  std::vector<std::uint8_t> continues(static_cast<std::size_t>(n), 0);
+  for (int j = 0; j + 1 < n; ++j) {
+    const int a = outer[j], b = outer[j + 1], e = outer[j + 2];
+    continues[j] = static_cast<std::uint8_t>(b - a == e - b + 1 && inner[a] == j + 1 &&
+                                             std::equal(inner + a + 1, inner + b, inner + b));
+  }
+  auto group = [&](const std::vector<int>& columns, std::vector<std::array<int, 2>>& out) {
+    for (std::size_t k = 0; k < columns.size();) {
+      std::size_t e = k + 1;
+      while (e < columns.size() && columns[e] == columns[e - 1] + 1 && continues[columns[e - 1]])
+        ++e;
+      const int first = columns[k], end = columns[e - 1] + 1;
+      out.push_back({first, end});
+      if (end - first > 1) runs.most_below = std::max(runs.most_below, outer[end] - outer[end - 1]);
+      k = e;
+    }
+  };
+  std::vector<int> every(static_cast<std::size_t>(n));
+  for (int j = 0; j < n; ++j) every[static_cast<std::size_t>(j)] = j;
+  group(every, runs.all);
+  if (split.parallel) {
+    group(split.side[0], runs.side[0]);
+    group(split.side[1], runs.side[1]);
+    group(split.top, runs.top);
+  }
+  return runs;
 }
 
 }  // namespace mpm

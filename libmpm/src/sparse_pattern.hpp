@@ -295,10 +295,14 @@ inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::Vect
 /// of solver.solve(b) on each column (P, L, D^-1, L^T, P^-1), but the columns side by side in
 /// `work` (scratch, row-major), so that each entry of L is read once for all of them rather
 /// than once per column (the floor scene's Phi coupling 9.5 -> 9.0 ms against a column per
-/// core, Enhanced's 19.5 -> 16.6 ms against a column at a time; docs/performance.md). The
-/// backward solve sums each row in four partial sums, and a factor whose elimination tree
-/// splits (SubtreeSplit) has its two sides solved on two threads: the sums are grouped
-/// differently from Eigen's (round-off apart), the same for any thread count. At most 3
+/// core, Enhanced's 19.5 -> 16.6 ms against a column at a time; docs/performance.md). Runs of
+/// columns that share their rows below (ColumnRuns) are solved as dense blocks: the rows below
+/// read once per run, each column's values as one contiguous stretch, four columns' updates
+/// summed before a row is stored (bench/bench_solve.cpp: a flat Phi's factor with 229,409
+/// entries 353-373 -> 194-196 us a solve in double, 286-300 -> 201-202 in single). The
+/// backward solve sums each row in four partial sums (a run's in eight), and a factor whose
+/// elimination tree splits (SubtreeSplit) has its two sides solved on two threads: the sums are
+/// grouped differently from Eigen's (round-off apart), the same for any thread count. At most 3
 /// columns. No allocation once `work` and x have held this size. With LdltValues::single the
 /// solve reads L's single-precision copy (after solver.round_to_single()): a preconditioner's
 /// solve, exact to about 1e-7.
@@ -309,9 +313,13 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
   const Eigen::Index cols = b.cols();
   const auto width = static_cast<std::size_t>(cols);
   const SubtreeSplit& split = solver.split();
-  // The rows, then (split solves) the second side's updates of the top rows.
+  const ColumnRuns& runs = solver.runs();
+  // The rows, then (split solves) the second side's updates of the top rows, then a buffer of
+  // the rows below a run for each thread.
   const std::size_t rows_size = static_cast<std::size_t>(n) * width;
-  work.resize(rows_size + (split.parallel ? split.top.size() * width : 0));
+  const std::size_t spill_size = split.parallel ? split.top.size() * width : 0;
+  const std::size_t run_size = static_cast<std::size_t>(runs.most_below) * width;
+  work.resize(rows_size + spill_size + 2 * run_size);
   x.resize(n, b.cols());
   const int* perm =
       solver.permutationP().size() > 0 ? solver.permutationP().indices().data() : nullptr;
@@ -378,27 +386,121 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
       for (int c = 0; c < C; ++c)
         rows[static_cast<std::size_t>(i) * C + c] = xi[c] - ((yi[c] + zi[c]) + wi[c]);
     };
+    // A run of columns [j0, j1) (ColumnRuns): each row below it is read into `below` (the
+    // columns' components apart, `most_below` apart) and written back once; each column
+    // updates (forward) or is read against (backward) those rows as a contiguous stretch of
+    // its values. The forward solve sums four columns' updates of a row before subtracting
+    // them; the backward sums each dot product in eight parts (vectors of them).
+    const auto stride = static_cast<std::size_t>(runs.most_below);
+    // The place of row i (forward: beyond `limit`, its place among the spilled top rows).
+    auto place = [&](int i, int limit, double* spill) {
+      return i <= limit ? &rows[static_cast<std::size_t>(i) * C]
+                        : &spill[static_cast<std::size_t>(split.top_slot[i]) * C];
+    };
+    auto forward_run = [&](const std::array<int, 2>& run, int limit, double* spill, double* below) {
+      const int j0 = run[0], j1 = run[1], last = j1 - 1;
+      if (j1 - j0 == 1) return forward(j0, limit, spill);
+      for (int j = j0; j < last; ++j) {  // the run's triangle
+        double xj[C];
+        for (int c = 0; c < C; ++c) xj[c] = rows[static_cast<std::size_t>(j) * C + c];
+        int p = outer[j];
+        for (int i = j + 1; i < j1; ++i, ++p) {
+          for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(i) * C + c] -= xj[c] * value[p];
+        }
+      }
+      const int count = outer[j1] - outer[last];
+      const int* row = inner + outer[last];
+      for (int t = 0; t < count; ++t) {
+        const double* from = place(row[t], limit, spill);
+        for (int c = 0; c < C; ++c) below[static_cast<std::size_t>(c) * stride + t] = from[c];
+      }
+      // Four columns at a time: each row's updates from them summed before it is stored.
+      int j = j0;
+      for (; j + 3 < j1; j += 4) {
+        const auto* __restrict v0 = value + outer[j] + (last - j);
+        const auto* __restrict v1 = value + outer[j + 1] + (last - j - 1);
+        const auto* __restrict v2 = value + outer[j + 2] + (last - j - 2);
+        const auto* __restrict v3 = value + outer[j + 3] + (last - j - 3);
+        for (int c = 0; c < C; ++c) {
+          const double* xs = &rows[static_cast<std::size_t>(j) * C + c];
+          const double x0 = xs[0], x1 = xs[C], x2 = xs[2 * C], x3 = xs[3 * C];
+          double* __restrict to = below + static_cast<std::size_t>(c) * stride;
+          for (int t = 0; t < count; ++t) {
+            to[t] -= (x0 * v0[t] + x1 * v1[t]) + (x2 * v2[t] + x3 * v3[t]);
+          }
+        }
+      }
+      for (; j < j1; ++j) {
+        const auto* __restrict v = value + outer[j] + (last - j);
+        for (int c = 0; c < C; ++c) {
+          const double xj = rows[static_cast<std::size_t>(j) * C + c];
+          double* __restrict to = below + static_cast<std::size_t>(c) * stride;
+          for (int t = 0; t < count; ++t) to[t] -= xj * v[t];
+        }
+      }
+      for (int t = 0; t < count; ++t) {
+        double* to = place(row[t], limit, spill);
+        for (int c = 0; c < C; ++c) to[c] = below[static_cast<std::size_t>(c) * stride + t];
+      }
+    };
+    auto backward_run = [&](const std::array<int, 2>& run, double* below) {
+      const int j0 = run[0], j1 = run[1], last = j1 - 1;
+      if (j1 - j0 == 1) return backward(j0);
+      const int count = outer[j1] - outer[last];
+      const int* row = inner + outer[last];
+      for (int t = 0; t < count; ++t) {
+        const double* from = &rows[static_cast<std::size_t>(row[t]) * C];
+        for (int c = 0; c < C; ++c) below[static_cast<std::size_t>(c) * stride + t] = from[c];
+      }
+      for (int j = j0; j < j1; ++j) {
+        const auto* __restrict v = value + outer[j] + (last - j);
+        for (int c = 0; c < C; ++c) {
+          const double* __restrict rhs = below + static_cast<std::size_t>(c) * stride;
+          double sum[8] = {};  // eight partial sums: one vector of them
+          int t = 0;
+          for (; t + 7 < count; t += 8) {
+            for (int k = 0; k < 8; ++k) sum[k] += v[t + k] * rhs[t + k];
+          }
+          for (; t < count; ++t) sum[0] += v[t] * rhs[t];
+          rows[static_cast<std::size_t>(j) * C + c] -=
+              ((sum[0] + sum[1]) + (sum[2] + sum[3])) + ((sum[4] + sum[5]) + (sum[6] + sum[7]));
+        }
+      }
+      for (int j = last - 1; j >= j0; --j) {  // the run's triangle, its last column first
+        double xj[C];
+        for (int c = 0; c < C; ++c) xj[c] = rows[static_cast<std::size_t>(j) * C + c];
+        int p = outer[j];
+        for (int i = j + 1; i < j1; ++i, ++p) {
+          for (int c = 0; c < C; ++c) xj[c] -= value[p] * rows[static_cast<std::size_t>(i) * C + c];
+        }
+        for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(j) * C + c] = xj[c];
+      }
+    };
     constexpr int kAll = std::numeric_limits<int>::max();
     const int count = static_cast<int>(n);
+    double* const spill = rows + rows_size;
+    double* const below0 = spill + spill_size;
+    double* const below1 = below0 + run_size;
     if (split.parallel) {
       // The two sides at once, then the top; the second side's updates of top rows added
       // between (SubtreeSplit).
-      double* spill = rows + rows_size;
       std::fill(spill, spill + split.top.size() * C, 0.0);
       tbb::parallel_invoke(
           [&] {
-            for (const int j : split.side[0]) forward(j, kAll, nullptr);
+            for (const auto& run : runs.side[0]) forward_run(run, kAll, nullptr, below0);
           },
           [&] {
-            for (const int j : split.side[1]) forward(j, split.root[j], spill);
+            for (const auto& run : runs.side[1]) {
+              forward_run(run, split.root[run[0]], spill, below1);
+            }
           });
       for (std::size_t t = 0; t < split.top.size(); ++t) {
         for (int c = 0; c < C; ++c)
           rows[static_cast<std::size_t>(split.top[t]) * C + c] += spill[t * C + c];
       }
-      for (const int j : split.top) forward(j, kAll, nullptr);
+      for (const auto& run : runs.top) forward_run(run, kAll, nullptr, below0);
     } else if (l.nonZeros() > 0) {
-      for (int j = 0; j < count; ++j) forward(j, kAll, nullptr);
+      for (const auto& run : runs.all) forward_run(run, kAll, nullptr, below0);
     }
     if (d.size() > 0) {
       for (int j = 0; j < count; ++j) {
@@ -407,16 +509,18 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
       }
     }
     if (split.parallel) {
-      for (auto t = split.top.rbegin(); t != split.top.rend(); ++t) backward(*t);
+      for (auto run = runs.top.rbegin(); run != runs.top.rend(); ++run) backward_run(*run, below0);
       tbb::parallel_invoke(
           [&] {
-            for (auto j = split.side[0].rbegin(); j != split.side[0].rend(); ++j) backward(*j);
+            for (auto run = runs.side[0].rbegin(); run != runs.side[0].rend(); ++run)
+              backward_run(*run, below0);
           },
           [&] {
-            for (auto j = split.side[1].rbegin(); j != split.side[1].rend(); ++j) backward(*j);
+            for (auto run = runs.side[1].rbegin(); run != runs.side[1].rend(); ++run)
+              backward_run(*run, below1);
           });
     } else if (l.nonZeros() > 0) {
-      for (int i = count - 1; i >= 0; --i) backward(i);
+      for (auto run = runs.all.rbegin(); run != runs.all.rend(); ++run) backward_run(*run, below0);
     }
   };
   auto apply_columns = [&](auto fixed) {

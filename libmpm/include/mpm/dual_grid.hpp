@@ -51,6 +51,25 @@ struct SubtreeSplit {
 /// increasing in each column) for ldlt_solve() (SubtreeSplit).
 SubtreeSplit split_subtrees(const Eigen::SparseMatrix<double>& l);
 
+/// Runs of consecutive columns of a unit lower factor L that ldlt_solve() (sparse_pattern.hpp)
+/// takes as one: in a run [first, end) each column's rows are the next column's with that
+/// column added on top (a fundamental supernode: the run's triangle is dense and every column
+/// shares the rows below the run). The solve then reads those rows' indices once for the run
+/// and updates (forward) or reads (backward) them through a dense buffer, a contiguous stretch
+/// of each column's values at a time, instead of row by row through the index for every column.
+/// The floor benchmark's Phi coupling has 1,620 columns, 1,236 of them in 40 runs of 4 or more
+/// (31 on average); Enhanced's contact system about 5,000 of 6,450 in 170 runs. A run lies in
+/// one part of the split (SubtreeSplit): `all` covers every column, `side` and `top` the split's
+/// parts, each in its columns' order.
+struct ColumnRuns {
+  std::vector<std::array<int, 2>> all, side[2], top;
+  int most_below = 0;  ///< the most rows below one run of two or more columns
+};
+
+/// The runs of `l` (Eigen's column storage, row indices increasing in each column, the
+/// diagonal not stored) in `split`'s parts (ColumnRuns).
+ColumnRuns column_runs(const Eigen::SparseMatrix<double>& l, const SubtreeSplit& split);
+
 /// Which values of L a solve with a SparseLdlt reads (ldlt_solve(), sparse_pattern.hpp).
 enum class LdltValues {
   full,   ///< L as factorised: the solve is exact to round-off
@@ -59,8 +78,8 @@ enum class LdltValues {
 
 /// Eigen's sparse LDL^T, with read access to D (its vectorD() returns a copy: an allocation
 /// per solve in ldlt_solve(), sparse_pattern.hpp), and the split of its elimination tree for
-/// solves on two threads, made again after the first factorisation of each new pattern (the
-/// tree and L's structure depend on the pattern only).
+/// solves on two threads and the runs of its columns (ColumnRuns), made again after the first
+/// factorisation of each new pattern (the tree and L's structure depend on the pattern only).
 ///
 /// A solve that only preconditions (conjugate gradients against an earlier step's factor,
 /// conjugate_refine()) may read L rounded to single precision: 8 bytes an entry with its row
@@ -83,6 +102,7 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
       : keeps_single_(kept == LdltValues::single) {}
   [[nodiscard]] const Eigen::VectorXd& diagonal() const { return m_diag; }
   [[nodiscard]] const SubtreeSplit& split() const { return split_; }
+  [[nodiscard]] const ColumnRuns& runs() const { return runs_; }
   /// L's values in single precision, in L's order, once round_to_single() has filled them
   /// for the factorisation in hand (`rounded()`).
   [[nodiscard]] const std::vector<float>& single_values() const { return single_; }
@@ -111,6 +131,7 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     Base::factorize(a);
     if (split_stale_ && info() == Eigen::Success) {
       split_ = split_subtrees(matrixL().nestedExpression());
+      runs_ = column_runs(matrixL().nestedExpression(), split_);
       split_stale_ = false;
     }
     // Sized here, in the step that factorises (a later step's rounding allocates nothing).
@@ -130,6 +151,7 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   }
   SubtreeSplit split_;
+  ColumnRuns runs_;
   std::vector<float> single_;
   bool keeps_single_ = false;
   bool split_stale_ = true;
