@@ -641,7 +641,8 @@ void Solver<D>::layer_scatter(bool with_force) {
     }
   }
   // Each pair's terms, particle by particle (a particle's data read once for its stencil), at
-  // the particle's place in its wall's cell order (its stencil's terms side by side).
+  // the particle's place in its wall's cell order among its slot's terms (DualWall::
+  // scatter_terms: a node then sums, for each cell around it, one contiguous stretch).
   //
   // Enhanced: p^alpha_S = sum_p m_p N_S v_p without the APIC term, so that an affine particle
   // field gives v^alpha = 0 (the standard grid already reproduces it, docs/enhanced.md). The
@@ -662,9 +663,10 @@ void Solver<D>::layer_scatter(bool with_force) {
           const LayerTerms& t = layer_terms_[i];
           const AlphaStencil<D>& st = layer_stencil_[i];
           const double m = P.mass[p];
-          const auto first = static_cast<std::size_t>(layer_place_[i] * DualWall<D>::kCellNodes);
+          const auto place = static_cast<std::size_t>(layer_place_[i]);
+          const std::size_t members = w.cell_members.size();
           for (int k = 0; k < st.count; ++k) {
-            auto& terms = w.scatter_terms[first + static_cast<std::size_t>(k)];
+            auto& terms = w.scatter_terms[static_cast<std::size_t>(k) * members + place];
             const double N = st.N[k];
             Vec<D> momentum;
             if (affine) {
@@ -700,7 +702,8 @@ void Solver<D>::layer_scatter(bool with_force) {
         const auto c = static_cast<std::size_t>(code / DualWall<D>::kCellNodes);
         const int k = code % DualWall<D>::kCellNodes;
         for (int place = w.cell_first[c]; place < w.cell_first[c + 1]; ++place) {
-          f(place, w.scatter_terms[static_cast<std::size_t>(place * DualWall<D>::kCellNodes + k)]);
+          f(place, w.scatter_terms[static_cast<std::size_t>(k) * w.cell_members.size() +
+                                   static_cast<std::size_t>(place)]);
         }
       }
     };

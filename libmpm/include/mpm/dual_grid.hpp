@@ -468,9 +468,12 @@ struct DualWall {
   /// The boundary nodes this step's layer particles reach, in increasing order (the only nodes
   /// whose arrays hold anything this step): those of the occupied cells.
   std::vector<int> scatter_nodes;
-  /// Each (particle, stencil slot) pair's terms at place * nodes per cell + slot (layer_scatter()
-  /// forms them particle by particle, then sums them node by node over the cells around it):
-  /// mass, momentum and force, or (the MUSL remap) momentum and the centroid's.
+  /// Each (particle, stencil slot) pair's terms at slot * (layer particles) + place
+  /// (layer_scatter() forms them particle by particle, then sums them node by node over the
+  /// cells around it, a cell's particles' terms of one slot side by side: with a particle's
+  /// slots side by side instead, each term a node read was a stride of six apart, the sums'
+  /// loads most of the node pass): mass, momentum and force, or (the MUSL remap) momentum and
+  /// the centroid's.
   std::vector<std::array<double, 1 + 2 * D>> scatter_terms;
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
