@@ -1,7 +1,7 @@
 // The dual-grid couplings' triangular solves (ldlt_solve(), libmpm/src/sparse_pattern.hpp): three
 // right-hand sides through the LDL^T factor of a Schur complement's pattern, an m x m grid of
 // multipliers each coupled to those within `reach` spacings (a flat Phi: the floor benchmark's
-// has 1,620 multipliers and 261,001 entries in L; m 40, reach 3 gives a factor of that size).
+// has 1,620 multipliers and 261,001 entries in L; m 40, reach 4 gives one of 229,409).
 //
 //   BM_LdltSolve/m/reach/single : one solve, L as factorised (single 0) or rounded to single
 //                                 precision (single 1, the refinement's preconditioner)
@@ -11,43 +11,19 @@
 
 #include <benchmark/benchmark.h>
 
-#include <algorithm>
-#include <cmath>
 #include <random>
 #include <vector>
 
 #include "sparse_pattern.hpp"
+#include "support/grid_spd.hpp"
 
 namespace {
-
-Eigen::SparseMatrix<double> grid_schur(int m, int reach) {
-  std::vector<Eigen::Triplet<double>> entries;
-  const int n = m * m;
-  std::vector<double> row_sum(static_cast<std::size_t>(n), 0.0);
-  for (int i = 0; i < m; ++i) {
-    for (int j = 0; j < m; ++j) {
-      for (int di = -reach; di <= reach; ++di) {
-        for (int dj = -reach; dj <= reach; ++dj) {
-          const int k = i + di, l = j + dj;
-          if ((di == 0 && dj == 0) || k < 0 || l < 0 || k >= m || l >= m) continue;
-          const double v = -1.0 / (1.0 + di * di + dj * dj);
-          entries.emplace_back(i * m + j, k * m + l, v);
-          row_sum[static_cast<std::size_t>(i * m + j)] += std::abs(v);
-        }
-      }
-    }
-  }
-  for (int r = 0; r < n; ++r) entries.emplace_back(r, r, 1.0 + 2.0 * row_sum[r]);
-  Eigen::SparseMatrix<double> a(n, n);
-  a.setFromTriplets(entries.begin(), entries.end());
-  return a;
-}
 
 void BM_LdltSolve(benchmark::State& state) {
   const auto m = static_cast<int>(state.range(0));
   const auto reach = static_cast<int>(state.range(1));
   const bool single = state.range(2) != 0;
-  const Eigen::SparseMatrix<double> a = grid_schur(m, reach);
+  const Eigen::SparseMatrix<double> a = mpm::test::grid_spd(m, reach);
   mpm::SparseLdlt solver(single ? mpm::LdltValues::single : mpm::LdltValues::full);
   solver.compute(a);
   if (solver.info() != Eigen::Success) {

@@ -14,6 +14,7 @@
 #include <tbb/global_control.h>
 
 #include "sparse_pattern.hpp"
+#include "support/grid_spd.hpp"
 
 namespace mpm {
 namespace {
@@ -83,31 +84,7 @@ TEST(SparseSolve, BlockSolveGivesEigensSolveForEachColumn) {
   check_block_solve<Eigen::MatrixXd>(solver, a, 2, 5);
 }
 
-/// The matrix of a 9-point stencil on an m x m grid of unknowns (the pattern of a Phi coupling's
-/// Schur complement on a flat wall: each multiplier couples to its neighbours within a few
-/// spacings), made strictly diagonally dominant as random_spd() (cond <= 3).
-Eigen::SparseMatrix<double> grid_spd(int m) {
-  std::vector<Eigen::Triplet<double>> entries;
-  const int n = m * m;
-  std::vector<double> row_sum(static_cast<std::size_t>(n), 0.0);
-  for (int i = 0; i < m; ++i) {
-    for (int j = 0; j < m; ++j) {
-      for (int di = -2; di <= 2; ++di) {
-        for (int dj = -2; dj <= 2; ++dj) {
-          const int k = i + di, l = j + dj;
-          if ((di == 0 && dj == 0) || k < 0 || l < 0 || k >= m || l >= m) continue;
-          const double v = -1.0 / (1.0 + di * di + dj * dj);
-          entries.emplace_back(i * m + j, k * m + l, v);
-          row_sum[static_cast<std::size_t>(i * m + j)] += std::abs(v);
-        }
-      }
-    }
-  }
-  for (int r = 0; r < n; ++r) entries.emplace_back(r, r, 1.0 + 2.0 * row_sum[r]);
-  Eigen::SparseMatrix<double> a(n, n);
-  a.setFromTriplets(entries.begin(), entries.end());
-  return a;
-}
+using test::grid_spd;  // a flat Phi's Schur complement pattern, 5 x 5 neighbours
 
 TEST(SparseSolve, SubtreeSplitCoversTheTreeAndKeepsItsOrder) {
   SparseLdlt solver;
