@@ -664,9 +664,8 @@ void Solver<D>::layer_scatter(bool with_force) {
           const AlphaStencil<D>& st = layer_stencil_[i];
           const double m = P.mass[p];
           const auto place = static_cast<std::size_t>(layer_place_[i]);
-          const std::size_t members = w.cell_members.size();
           for (int k = 0; k < st.count; ++k) {
-            auto& terms = w.scatter_terms[static_cast<std::size_t>(k) * members + place];
+            auto& terms = w.scatter_term(k, place);
             const double N = st.N[k];
             Vec<D> momentum;
             if (affine) {
@@ -688,7 +687,7 @@ void Solver<D>::layer_scatter(bool with_force) {
         }
       });
   // Each node sums its particles' terms cell by cell around it (in DualWall::node_cells' order),
-  // in the layer list's order within a cell, the terms of one cell side by side; nodes in
+  // in the layer list's order within a cell, a cell's terms of one slot side by side; nodes in
   // parallel: no two tasks write the same node.
   for (auto& w : dual_) {
     const bool touch = with_force && w.spec->contact.separable;
@@ -702,8 +701,7 @@ void Solver<D>::layer_scatter(bool with_force) {
         const auto c = static_cast<std::size_t>(code / DualWall<D>::kCellNodes);
         const int k = code % DualWall<D>::kCellNodes;
         for (int place = w.cell_first[c]; place < w.cell_first[c + 1]; ++place) {
-          f(place, w.scatter_terms[static_cast<std::size_t>(k) * w.cell_members.size() +
-                                   static_cast<std::size_t>(place)]);
+          f(place, w.scatter_term(k, static_cast<std::size_t>(place)));
         }
       }
     };

@@ -475,6 +475,10 @@ struct DualWall {
   /// loads most of the node pass): mass, momentum and force, or (the MUSL remap) momentum and
   /// the centroid's.
   std::vector<std::array<double, 1 + 2 * D>> scatter_terms;
+  /// The terms of the pair (stencil slot `slot`, particle at `place` in the cell order).
+  std::array<double, 1 + 2 * D>& scatter_term(int slot, std::size_t place) {
+    return scatter_terms[static_cast<std::size_t>(slot) * cell_members.size() + place];
+  }
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
   EnhancedState<D> enh;
