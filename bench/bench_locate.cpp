@@ -1,7 +1,8 @@
 // Point location in a boundary-grid layer (DESIGN.md section 3, point 5): located points per
 // second (items/s) for a cloud of particles flowing over a wavy terrain, with and without the
-// per-A-cell skip flags (mpmgeom::layer_cell_flags), on one or two threads, with the particles
-// in random order or sorted by A-cell as an MPM code keeps them.
+// per-A-cell skip flags (mpmgeom::layer_cell_flags, skip:1) and with the flags and the bounds of
+// the layer in each flagged cell (mpmgeom::LayerCellFilter, skip:2), on one or two threads, with
+// the particles in random order or sorted by A-cell as an MPM code keeps them.
 //
 // The layer is built by hand (wedges on a 100 x 100 vertex terrain sheet, ~20k triangles,
 // extruded by t = h along area-weighted vertex normals), so the benchmark does not depend on
@@ -101,6 +102,7 @@ struct SkipGrid {
   mpmgeom::GridSpec spec;
   std::array<int, 3> cells{};
   std::vector<std::uint8_t> touches_layer;
+  mpmgeom::LayerCellFilter filter;
 
   SkipGrid(const mpmgeom::BoundaryGrid& g, const Eigen::MatrixXd& points) {
     const Eigen::Vector3d lo =
@@ -116,6 +118,7 @@ struct SkipGrid {
       spec.nodes[i] = cells[static_cast<std::size_t>(i)] + 1;
     }
     touches_layer = mpmgeom::layer_cell_flags(g, spec);
+    filter = mpmgeom::LayerCellFilter(g, spec);
   }
   [[nodiscard]] int cell_of(double x, int axis) const {
     return static_cast<int>(std::floor((x - spec.origin[axis]) / kSpacing));
@@ -127,16 +130,17 @@ struct SkipGrid {
                static_cast<std::size_t>(cells[2]) +
            static_cast<std::size_t>(d);
   }
-  /// skip[i] = 1 if point i's A-cell does not touch the layer (recomputed every step in a
-  /// simulation, so it is part of the timed loop).
-  void flags(const Eigen::MatrixXd& points, std::vector<std::uint8_t>& skip) const {
+  /// skip[i] = 1 if point i's A-cell does not touch the layer, or (with `bounds`) the point
+  /// lies outside the layer's bounds in it (recomputed every step in a simulation, so it is part
+  /// of the timed loop).
+  void flags(const Eigen::MatrixXd& points, std::vector<std::uint8_t>& skip, bool bounds) const {
     skip.resize(static_cast<std::size_t>(points.rows()));
     for (Eigen::Index n = 0; n < points.rows(); ++n) {
-      skip[static_cast<std::size_t>(n)] =
-          touches_layer[index(cell_of(points(n, 0), 0), cell_of(points(n, 1), 1),
-                              cell_of(points(n, 2), 2))] == 0
-              ? 1
-              : 0;
+      const Eigen::Vector3i cell(cell_of(points(n, 0), 0), cell_of(points(n, 1), 1),
+                                 cell_of(points(n, 2), 2));
+      bool query = touches_layer[index(cell[0], cell[1], cell[2])] != 0;
+      if (query && bounds) query = filter.may_hold(cell, points.row(n).transpose());
+      skip[static_cast<std::size_t>(n)] = query ? 0 : 1;
     }
   }
 };
@@ -167,7 +171,8 @@ Eigen::MatrixXd sorted_by_cell(const Eigen::MatrixXd& points, const SkipGrid& gr
   return sorted;
 }
 
-// Args: points, use skip flags (0/1), threads, particles sorted by A-cell (0/1).
+// Args: points, skip (0 none, 1 flags, 2 flags and bounds), threads, particles sorted by A-cell
+// (0/1).
 void BM_LocateCloud(benchmark::State& state) {
   const auto count = static_cast<int>(state.range(0));
   const bool use_skip = state.range(1) != 0;
@@ -180,7 +185,7 @@ void BM_LocateCloud(benchmark::State& state) {
   std::vector<std::uint8_t> skip;
   std::vector<mpmgeom::LayerLocator::Location> out;
   for (auto _ : state) {
-    if (use_skip) skip_grid.flags(points, skip);
+    if (use_skip) skip_grid.flags(points, skip, state.range(1) == 2);
     f.locator.locate(points, out, use_skip ? &skip : nullptr);
     benchmark::DoNotOptimize(out.data());
   }
@@ -201,8 +206,10 @@ BENCHMARK(BM_LocateCloud)
     ->Args({1000000, 1, 1, 0})
     ->Args({1000000, 0, 1, 1})
     ->Args({1000000, 1, 1, 1})
+    ->Args({1000000, 2, 1, 1})
     ->Args({1000000, 0, 2, 1})
     ->Args({1000000, 1, 2, 1})
+    ->Args({1000000, 2, 2, 1})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
 

@@ -30,6 +30,7 @@
 #include <sstream>
 #include <stdexcept>
 #include <string>
+#include <unordered_map>
 
 namespace mpmgeom {
 
@@ -549,18 +550,24 @@ Coupling couple(const BoundaryGrid& boundary, const GridSpec& grid, CouplingSurf
   return coupling;
 }
 
-std::vector<std::uint8_t> layer_cell_flags(const BoundaryGrid& boundary, const GridSpec& grid) {
+namespace {
+
+// Calls f(i, c) for every A-cell i (per axis, unused axes 0) that the closed cell meets the
+// bounding box, grown by 1e-9 h, of layer cell c's nodes; `cells` gets the A-cells per axis
+// (unused axes 1). The checks and messages of layer_cell_flags ("what" names the caller).
+template <class F>
+void for_each_cell_meeting_the_layer(const BoundaryGrid& boundary, const GridSpec& grid,
+                                     const char* what, Eigen::Vector3i& cells, F&& f) {
   check_grid(grid);
   const int dim = grid.dimension;
   if (boundary.dimension != dim) {
-    throw std::invalid_argument("layer_cell_flags: boundary grid dimension " +
+    throw std::invalid_argument(std::string(what) + ": boundary grid dimension " +
                                 std::to_string(boundary.dimension) + " differs from grid " +
                                 std::to_string(dim));
   }
-  Eigen::Vector3i cells = Eigen::Vector3i::Ones();
+  cells = Eigen::Vector3i::Ones();
   for (int d = 0; d < dim; ++d) cells[d] = std::max(0, grid.nodes[d] - 1);
-  std::vector<std::uint8_t> flags(static_cast<std::size_t>(cells.prod()), 0);
-  if (flags.empty()) return flags;
+  if (cells.prod() == 0) return;
 
   // Layer cells are convex combinations of their nodes (the alpha basis is non-negative and
   // sums to 1), so the nodes' bounding box contains the cell. The slack covers rounding in the
@@ -568,7 +575,7 @@ std::vector<std::uint8_t> layer_cell_flags(const BoundaryGrid& boundary, const G
   const double slack = 1e-9;
   const int per_cell = boundary.nodes_per_cell();
   if (boundary.cells.rows() > 0 && boundary.cells.cols() != per_cell) {
-    throw std::invalid_argument("layer_cell_flags: cells have " +
+    throw std::invalid_argument(std::string(what) + ": cells have " +
                                 std::to_string(boundary.cells.cols()) + " nodes, expected " +
                                 std::to_string(per_cell));
   }
@@ -580,7 +587,7 @@ std::vector<std::uint8_t> layer_cell_flags(const BoundaryGrid& boundary, const G
       for (int k = 0; k < per_cell; ++k) {
         const int node = boundary.cells(c, k);
         if (node < 0 || node >= boundary.nodes.rows()) {
-          throw std::invalid_argument("layer_cell_flags: layer cell " + std::to_string(c) +
+          throw std::invalid_argument(std::string(what) + ": layer cell " + std::to_string(c) +
                                       " refers to node " + std::to_string(node));
         }
         const double xg = (boundary.nodes(node, d) - grid.origin[d]) / grid.spacing;
@@ -588,7 +595,7 @@ std::vector<std::uint8_t> layer_cell_flags(const BoundaryGrid& boundary, const G
         max_xg = std::max(max_xg, xg);
       }
       if (!std::isfinite(min_xg) || !std::isfinite(max_xg)) {
-        throw std::invalid_argument("layer_cell_flags: layer cell " + std::to_string(c) +
+        throw std::invalid_argument(std::string(what) + ": layer cell " + std::to_string(c) +
                                     " has a non-finite node");
       }
       const double first = std::floor(min_xg - slack), last = std::floor(max_xg + slack);
@@ -597,16 +604,153 @@ std::vector<std::uint8_t> layer_cell_flags(const BoundaryGrid& boundary, const G
       hi[d] = static_cast<int>(std::min(last, cells[d] - 1.0));
     }
     if (!overlaps) continue;
-    for (int i = lo[0]; i <= hi[0]; ++i) {
-      for (int j = lo[1]; j <= hi[1]; ++j) {
-        for (int k = lo[2]; k <= hi[2]; ++k) {
-          const long index = (static_cast<long>(i) * cells[1] + j) * cells[2] + k;
-          flags[static_cast<std::size_t>(index)] = 1;
-        }
+    Eigen::Vector3i i;
+    for (i[0] = lo[0]; i[0] <= hi[0]; ++i[0]) {
+      for (i[1] = lo[1]; i[1] <= hi[1]; ++i[1]) {
+        for (i[2] = lo[2]; i[2] <= hi[2]; ++i[2]) f(i, c);
       }
     }
   }
+}
+
+}  // namespace
+
+std::vector<std::uint8_t> layer_cell_flags(const BoundaryGrid& boundary, const GridSpec& grid) {
+  Eigen::Vector3i cells;
+  std::vector<std::uint8_t> flags;
+  for_each_cell_meeting_the_layer(
+      boundary, grid, "layer_cell_flags", cells, [&](const Eigen::Vector3i& i, Eigen::Index) {
+        if (flags.empty()) flags.assign(static_cast<std::size_t>(cells.prod()), 0);
+        flags[static_cast<std::size_t>((static_cast<long>(i[0]) * cells[1] + i[1]) * cells[2] +
+                                       i[2])] = 1;
+      });
+  flags.resize(static_cast<std::size_t>(cells.prod()), 0);
   return flags;
+}
+
+LayerCellFilter::LayerCellFilter(const BoundaryGrid& boundary, const GridSpec& grid) {
+  dimension_ = grid.dimension;
+  const int per_cell = boundary.nodes_per_cell();
+  const int half = per_cell / 2;  // wall-side nodes first, their interface-side nodes after
+  // The A-cells met, numbered as met; per A-cell the directions' sum, then the bounds.
+  std::unordered_map<long, int> index;
+  std::vector<Eigen::Vector3d> direction;
+  Eigen::Vector3i cells;
+  const auto linear = [&](const Eigen::Vector3i& i) {
+    return (static_cast<long>(i[0]) * cells[1] + i[1]) * cells[2] + i[2];
+  };
+  const auto node = [&](Eigen::Index c, int k) {
+    Eigen::Vector3d x = Eigen::Vector3d::Zero();
+    x.head(dimension_) = boundary.nodes.row(boundary.cells(c, k)).transpose();
+    return x;
+  };
+  for_each_cell_meeting_the_layer(
+      boundary, grid, "LayerCellFilter", cells, [&](const Eigen::Vector3i& i, Eigen::Index c) {
+        const auto [it, added] = index.try_emplace(linear(i), static_cast<int>(bounds_.size()));
+        if (added) {
+          bounds_.emplace_back();
+          Bounds& b = bounds_.back();
+          b.lo.fill(INFINITY);
+          b.hi.fill(-INFINITY);
+          b.slab_lo = INFINITY;
+          b.slab_hi = -INFINITY;
+          direction.emplace_back(Eigen::Vector3d::Zero());
+        }
+        Eigen::Vector3d up = Eigen::Vector3d::Zero();
+        for (int k = 0; k < half; ++k) up += node(c, half + k) - node(c, k);
+        if (up.norm() > 0.0) direction[static_cast<std::size_t>(it->second)] += up.normalized();
+      });
+  // Each layer cell's pad: LayerLocator's (1e-6 of its size plus a few float steps of its
+  // coordinates), which also covers the 1e-10 of a cell its natural coordinates may lie out.
+  const auto pad_of = [&](Eigen::Index c) {
+    Eigen::Vector3d lo = Eigen::Vector3d::Constant(INFINITY), hi = -lo;
+    for (int k = 0; k < per_cell; ++k) {
+      lo = lo.cwiseMin(node(c, k));
+      hi = hi.cwiseMax(node(c, k));
+    }
+    const double scale = std::max(lo.cwiseAbs().maxCoeff(), hi.cwiseAbs().maxCoeff());
+    return 1e-6 * (hi - lo).norm() + 8.0 * std::numeric_limits<float>::epsilon() * scale;
+  };
+  for (std::size_t b = 0; b < bounds_.size(); ++b) {
+    const Eigen::Vector3d& sum = direction[b];
+    // Directions that cancel (a layer folded around an edge inside the cell): the box alone.
+    if (sum.norm() > 1e-3) {
+      for (int d = 0; d < 3; ++d)
+        bounds_[b].normal[static_cast<std::size_t>(d)] = sum.normalized()[d];
+    }
+  }
+  for_each_cell_meeting_the_layer(
+      boundary, grid, "LayerCellFilter", cells, [&](const Eigen::Vector3i& i, Eigen::Index c) {
+        Bounds& b = bounds_[static_cast<std::size_t>(index.at(linear(i)))];
+        const double pad = pad_of(c);
+        const Eigen::Vector3d n(b.normal[0], b.normal[1], b.normal[2]);
+        for (int k = 0; k < per_cell; ++k) {
+          const Eigen::Vector3d x = node(c, k);
+          for (int d = 0; d < dimension_; ++d) {
+            const auto u = static_cast<std::size_t>(d);
+            b.lo[u] = std::min(b.lo[u], x[d] - pad);
+            b.hi[u] = std::max(b.hi[u], x[d] + pad);
+          }
+          b.slab_lo = std::min(b.slab_lo, n.dot(x) - pad);
+          b.slab_hi = std::max(b.slab_hi, n.dot(x) + pad);
+        }
+      });
+  // The two-level index: blocks of 8 cells a side, a held block's cells each an entry.
+  constexpr int side = 1 << kBlockShift;
+  for (int d = 0; d < 3; ++d) blocks_[d] = d < dimension_ ? (cells[d] + side - 1) / side : 1;
+  const int block_cells = dimension_ == 1   ? side
+                          : dimension_ == 2 ? side * side
+                                            : side * side * side;
+  block_first_.assign(static_cast<std::size_t>(blocks_.prod()), -1);
+  for (const auto& [cell, b] : index) {
+    Eigen::Vector3i i;
+    long rest = cell;
+    for (int d = 2; d >= 0; --d) {
+      i[d] = static_cast<int>(rest % cells[d]);
+      rest /= cells[d];
+    }
+    const Eigen::Vector3i block = i.unaryExpr([](int v) { return v >> kBlockShift; });
+    int& first = block_first_[static_cast<std::size_t>(
+        (static_cast<long>(block[0]) * blocks_[1] + block[1]) * blocks_[2] + block[2])];
+    if (first < 0) {
+      first = static_cast<int>(cell_bounds_.size());
+      cell_bounds_.resize(cell_bounds_.size() + static_cast<std::size_t>(block_cells), -1);
+    }
+    const Eigen::Vector3i in = i.unaryExpr([](int v) { return v & (side - 1); });
+    int place = 0;
+    for (int d = 0; d < dimension_; ++d) place = place * side + in[d];
+    cell_bounds_[static_cast<std::size_t>(first + place)] = b;
+  }
+}
+
+int LayerCellFilter::bounds_of(const Eigen::Vector3i& cell) const {
+  if (block_first_.empty()) return -1;
+  constexpr int side = 1 << kBlockShift;
+  long block = 0;
+  int place = 0;
+  for (int d = 0; d < dimension_; ++d) {
+    block = block * blocks_[d] + (cell[d] >> kBlockShift);
+    place = place * side + (cell[d] & (side - 1));
+  }
+  const int first = block_first_[static_cast<std::size_t>(block)];
+  return first < 0 ? -1 : cell_bounds_[static_cast<std::size_t>(first + place)];
+}
+
+bool LayerCellFilter::may_hold(const Eigen::Vector3i& cell, const Eigen::Vector3d& x) const {
+  const int b = bounds_of(cell);
+  if (b < 0) return false;
+  const Bounds& s = bounds_[static_cast<std::size_t>(b)];
+  for (int d = 0; d < dimension_; ++d) {
+    const auto u = static_cast<std::size_t>(d);
+    if (!(x[d] >= s.lo[u] && x[d] <= s.hi[u])) return false;
+  }
+  const double along = s.normal[0] * x[0] + s.normal[1] * x[1] + s.normal[2] * x[2];
+  return along >= s.slab_lo && along <= s.slab_hi;
+}
+
+std::size_t LayerCellFilter::bytes() const {
+  return block_first_.capacity() * sizeof(int) + cell_bounds_.capacity() * sizeof(int) +
+         bounds_.capacity() * sizeof(Bounds);
 }
 
 }  // namespace mpmgeom

@@ -285,6 +285,7 @@ void Solver<D>::setup_dual_walls() {
     w.spec = &spec;
     w.layer = &spec.package->layer;
     w.locator = std::make_unique<mpmgeom::LayerLocator>(*w.layer);
+    w.cell_filter = mpmgeom::LayerCellFilter(*w.layer, spec.package->grid);
     w.cell_nodes.assign(w.layer->cell_count(), {});
     for (std::size_t c = 0; c < w.cell_nodes.size(); ++c) {
       for (int k = 0; k < DualWall<D>::kCellNodes; ++k) {  // the scene's dimension (scene.cpp)
@@ -468,8 +469,9 @@ void Solver<D>::setup_dual_walls() {
   }
 }
 
-// Ownership: a particle in a flagged standard-grid cell is looked up in the layer; found means
-// the boundary grid owns it this step. Unflagged cells never query Embree. The particles found
+// Ownership: a particle in a flagged standard-grid cell, within the bounds the layer's cells
+// there have (DualWall::cell_filter), is looked up in the layer; found means the boundary grid
+// owns it this step. Other particles never query Embree. The particles found
 // are listed in index order with their cell and natural coordinates (per particle only the wall
 // and the place in that list: most particles are in no layer).
 template <int D>
@@ -494,18 +496,21 @@ void Solver<D>::locate_in_layers() {
           previous_wall >= 0 ? layer_at_[static_cast<std::size_t>(P.layer_slot[p])].cell : -1;
       P.layer_wall[p] = -1;
       long cell = 0;
+      Eigen::Vector3i ijk = Eigen::Vector3i::Zero();
       for (int d = 0; d < D; ++d) {
-        const int i = std::clamp(
+        ijk[d] = std::clamp(
             static_cast<int>(std::floor((P.position[p][d] - grid.origin[d]) * grid.inv_h)), 0,
             cells[d] - 1);
-        cell = cell * cells[d] + i;
+        cell = cell * cells[d] + ijk[d];
       }
       if (!coupled_cell_.empty()) near_coupling_[p] = coupled_cell_[static_cast<std::size_t>(cell)];
+      Eigen::Vector3d x = Eigen::Vector3d::Zero();
+      x.head<D>() = P.position[p];
       for (std::size_t wi = 0; wi < dual_.size(); ++wi) {
+        // The flag first (a byte, as the filter's cells): most particles' cell has none.
         const auto& flags = dual_[wi].spec->package->cell_flags;
         if (flags.empty() || flags[static_cast<std::size_t>(cell)] == 0) continue;
-        Eigen::Vector3d x = Eigen::Vector3d::Zero();
-        x.head<D>() = P.position[p];
+        if (!dual_[wi].cell_filter.may_hold(ijk, x)) continue;
         const auto found = dual_[wi].locator->locate(
             x, previous_wall == static_cast<int>(wi) ? previous_cell : -1);
         if (found.cell >= 0) {
@@ -625,18 +630,18 @@ void Solver<D>::layer_scatter(bool with_force) {
       layer_place_[i] = place;
     }
     for (auto& w : dual_) {
-      w.scatter_nodes.clear();
+      // The occupied cells' nodes marked, then collected in node order by one pass over the
+      // layer's nodes (a sort of the list cost ten times as much on the floor benchmark).
       for (std::size_t c = 0; c + 1 < w.cell_first.size(); ++c) {
         if (w.cell_first[c + 1] == w.cell_first[c]) continue;
-        for (int k = 0; k < DualWall<D>::kCellNodes; ++k) {
-          const int node = w.cell_nodes[c][static_cast<std::size_t>(k)];
-          if (w.node_reached[static_cast<std::size_t>(node)] != 0) continue;
-          w.node_reached[static_cast<std::size_t>(node)] = 1;
-          w.scatter_nodes.push_back(node);
-        }
+        for (const int node : w.cell_nodes[c]) w.node_reached[static_cast<std::size_t>(node)] = 1;
       }
-      std::sort(w.scatter_nodes.begin(), w.scatter_nodes.end());
-      for (const int node : w.scatter_nodes) w.node_reached[static_cast<std::size_t>(node)] = 0;
+      w.scatter_nodes.clear();
+      for (std::size_t node = 0; node < w.node_reached.size(); ++node) {
+        if (w.node_reached[node] == 0) continue;
+        w.node_reached[node] = 0;
+        w.scatter_nodes.push_back(static_cast<int>(node));
+      }
       w.scatter_terms.resize(w.cell_members.size() * DualWall<D>::kCellNodes);
     }
   }

@@ -23,6 +23,7 @@
 #include <Eigen/Geometry>
 
 #include "mpmgeom/boundary_grid.hpp"
+#include "mpmgeom/locator.hpp"
 
 namespace {
 
@@ -842,6 +843,120 @@ TEST(Coupling, LayerCellFlagsCoverTheLayer) {
     EXPECT_LT(flagged, cells / 10 + 8) << "flags far more cells than the layer touches";
     // A far cell: the grid's first corner.
     EXPECT_EQ(flags[0], 0);
+  }
+}
+
+// LayerCellFilter flags the cells layer_cell_flags flags, keeps every point of the layer (every
+// point of every cell, and every point the locator finds in a cloud over the flagged cells), and
+// over a planar layer extruded along its normal (3D, 1D) keeps the points between its faces and
+// drops those 1% of its thickness beyond either: the slab is the layer itself, grown only by the
+// pads (1e-6 of a cell). (The 2D polyline's segments slope against its one extrusion direction:
+// its slabs span the slope across a cell, and only the first checks apply.)
+TEST(Coupling, LayerCellFilterKeepsTheLayerAndDropsWhatLiesBeyondItsFaces) {
+  std::mt19937 rng(31);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  for (int variant = 1; variant <= 4; ++variant) {
+    const bool warped = variant == 4;  // 3D, thickness varying over the layer: curved cells
+    const int dim = warped ? 3 : variant;
+    const GridSpec g = make_grid(dim, Kernel::bspline2);
+    const double t = (dim == 1 ? 1.7 : dim == 2 ? 0.6 : 0.8) * g.spacing;
+    BoundaryGrid b;
+    Eigen::Vector3d normal = Eigen::Vector3d::UnitX();
+    std::vector<Eigen::Vector3d> on_wall;  // points on a planar Gamma, inside its edges
+    if (dim == 3) {
+      const Eigen::Matrix3d frame = random_rotation(rng);
+      b = planar_layer_3d(grid_centre(g), frame, 2.0, 4, t);
+      normal = frame.col(2);
+      for (int k = 0; k < 50; ++k) {
+        on_wall.emplace_back(grid_centre(g) + 1.6 * (unit(rng) - 0.5) * frame.col(0) +
+                             1.6 * (unit(rng) - 0.5) * frame.col(1));
+      }
+      if (warped) {
+        const Eigen::Index half = b.nodes.rows() / 2;
+        for (Eigen::Index n = half; n < b.nodes.rows(); ++n) {
+          const Eigen::Vector3d wall = b.nodes.row(n - half).transpose();
+          const double stretch = 1.0 + 0.4 * std::sin(3.0 * wall.x()) * std::cos(2.0 * wall.y());
+          b.nodes.row(n) = (wall + stretch * t * normal).transpose();
+        }
+      }
+    } else if (dim == 2) {
+      Eigen::MatrixX2d points(4, 2);
+      points << 0.0, 0.0, 0.7, 0.3, 1.3, 0.2, 2.0, 0.9;
+      points.rowwise() += grid_centre(g).head(2).transpose();
+      b = layer_2d(points, Eigen::Vector2d(-0.3, 1.0).normalized(), t);
+    } else {
+      b = layer_1d(grid_centre(g).x() + 0.1, t);
+      on_wall.emplace_back(grid_centre(g).x() + 0.1, 0.0, 0.0);
+    }
+    const std::vector<std::uint8_t> flags = mpmgeom::layer_cell_flags(b, g);
+    const mpmgeom::LayerCellFilter filter(b, g);
+    const auto cell_of = [&](const Eigen::Vector3d& x) {
+      Eigen::Vector3i i = Eigen::Vector3i::Zero();
+      for (int a = 0; a < dim; ++a) {
+        i[a] = static_cast<int>(std::floor((x[a] - g.origin[a]) / g.spacing));
+      }
+      return i;
+    };
+    Eigen::Vector3i cells = Eigen::Vector3i::Ones();
+    for (int a = 0; a < dim; ++a) cells[a] = g.nodes[a] - 1;
+    long differ = 0, flagged = 0;
+    for (int i = 0; i < cells[0]; ++i) {
+      for (int j = 0; j < cells[1]; ++j) {
+        for (int k = 0; k < cells[2]; ++k) {
+          const long index = (static_cast<long>(i) * cells[1] + j) * cells[2] + k;
+          const bool flag = flags[static_cast<std::size_t>(index)] != 0;
+          flagged += flag ? 1 : 0;
+          if (filter.flagged(Eigen::Vector3i(i, j, k)) != flag) ++differ;
+        }
+      }
+    }
+    EXPECT_EQ(differ, 0) << "variant " << variant;
+    EXPECT_EQ(static_cast<long>(filter.flagged_cells()), flagged);
+    // Every point of every cell, its corners included.
+    for (std::size_t c = 0; c < b.cell_count(); ++c) {
+      for (int sample = 0; sample < 200; ++sample) {
+        Eigen::Vector3d xi(unit(rng), unit(rng), unit(rng));
+        if (dim == 3 && xi[0] + xi[1] > 1.0) {
+          xi[0] = 1.0 - xi[0];
+          xi[1] = 1.0 - xi[1];
+        }
+        if (sample < 8) {
+          for (int a = 0; a < dim; ++a) xi[a] = (sample >> a) & 1;
+          if (dim == 3 && xi[0] + xi[1] > 1.0) xi[1] = 0.0;
+        }
+        Eigen::Vector3d x = Eigen::Vector3d::Zero();
+        x.head(dim) = mpmgeom::cell_point(b, c, xi).head(dim);
+        EXPECT_TRUE(filter.may_hold(cell_of(x), x))
+            << "variant " << variant << " cell " << c << " xi " << xi.transpose();
+      }
+    }
+    // Every point the locator finds among random points around the layer.
+    const mpmgeom::LayerLocator locator(b);
+    Eigen::Vector3d lo = Eigen::Vector3d::Zero(), hi = Eigen::Vector3d::Zero();
+    lo.head(dim) = b.nodes.colwise().minCoeff().transpose().array() - g.spacing;
+    hi.head(dim) = b.nodes.colwise().maxCoeff().transpose().array() + g.spacing;
+    int found = 0, kept = 0;
+    for (int n = 0; n < 20000; ++n) {
+      Eigen::Vector3d x = Eigen::Vector3d::Zero();
+      for (int a = 0; a < dim; ++a) x[a] = lo[a] + (hi[a] - lo[a]) * unit(rng);
+      const bool in_layer = locator.locate(x).cell >= 0;
+      const bool may = filter.may_hold(cell_of(x), x);
+      found += in_layer ? 1 : 0;
+      kept += may ? 1 : 0;
+      if (in_layer) {
+        EXPECT_TRUE(may) << "variant " << variant << " x " << x.transpose();
+      }
+    }
+    EXPECT_GT(found, 0);
+    EXPECT_GE(kept, found);
+    // Across the faces of a planar layer: 1% of t beyond either face is dropped.
+    for (const Eigen::Vector3d& wall : warped ? std::vector<Eigen::Vector3d>{} : on_wall) {
+      for (const double s : {-0.01, 0.01, 0.5, 0.99, 1.01}) {
+        const Eigen::Vector3d x = wall + s * t * normal;
+        EXPECT_EQ(filter.may_hold(cell_of(x), x), s > 0.0 && s < 1.0)
+            << "variant " << variant << " at " << s << " of the thickness, x " << x.transpose();
+      }
+    }
   }
 }
 

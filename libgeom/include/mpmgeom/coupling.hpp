@@ -10,6 +10,7 @@
 // the product degree.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <vector>
 
@@ -70,5 +71,43 @@ Coupling couple(const BoundaryGrid& boundary, const GridSpec& grid, CouplingSurf
 /// particle in this cell be in the layer", not "can it touch a node the layer touches".
 /// Parts of the layer outside the grid are ignored.
 std::vector<std::uint8_t> layer_cell_flags(const BoundaryGrid& boundary, const GridSpec& grid);
+
+/// layer_cell_flags made finer, for the point location's skip: per flagged A-cell, the bounding
+/// box of the layer cells that meet it and a slab {x : lo <= n . x <= hi} across them, n their
+/// mean column direction (interface side minus wall side), lo and hi the least and greatest
+/// n . x of their nodes (a layer cell lies in its nodes' convex hull). Both are grown by 1e-6 of
+/// the cell's size plus the coordinates' float round-off, as LayerLocator pads its cells'
+/// boxes, so a point outside either is in none of those layer cells: it needs no query. A
+/// flat layer off the grid lines flags the A-cells it crosses, a thin layer a cell or two
+/// thick; the particles of a flagged cell above or below it (half of them, for a layer one cell
+/// thick) fall outside its slab. Memory in proportion to the flagged cells: an index per block
+/// of 8 cells a side, one per cell of a block that holds a flagged cell, and the bounds.
+class LayerCellFilter {
+ public:
+  LayerCellFilter() = default;  ///< holds no cell: may_hold() is false everywhere
+  /// Throws std::invalid_argument as layer_cell_flags does.
+  LayerCellFilter(const BoundaryGrid& boundary, const GridSpec& grid);
+  /// `cell`: the A-cell floor((x - origin) / h) of `x` per axis, within the grid's cells; unused
+  /// axes 0 in both. False means no layer cell holds x; true that one may.
+  [[nodiscard]] bool may_hold(const Eigen::Vector3i& cell, const Eigen::Vector3d& x) const;
+  /// Whether layer_cell_flags flags the cell (the same cells).
+  [[nodiscard]] bool flagged(const Eigen::Vector3i& cell) const { return bounds_of(cell) >= 0; }
+  [[nodiscard]] std::size_t flagged_cells() const { return bounds_.size(); }
+  [[nodiscard]] std::size_t bytes() const;
+
+ private:
+  static constexpr int kBlockShift = 3;  ///< blocks of 8 cells a side
+  struct Bounds {
+    std::array<double, 3> lo{}, hi{};  ///< the box (used axes)
+    std::array<double, 3> normal{};    ///< n, or 0 where the cells' directions cancel
+    double slab_lo = 0.0, slab_hi = 0.0;
+  };
+  [[nodiscard]] int bounds_of(const Eigen::Vector3i& cell) const;
+  int dimension_ = 0;
+  Eigen::Vector3i blocks_ = Eigen::Vector3i::Zero();  ///< per axis (unused axes 1)
+  std::vector<int> block_first_;  ///< per block: its first entry in cell_bounds_, or -1
+  std::vector<int> cell_bounds_;  ///< per cell of a held block: index into bounds_, or -1
+  std::vector<Bounds> bounds_;
+};
 
 }  // namespace mpmgeom

@@ -357,6 +357,9 @@ struct DualWall {
   const DualWallSpec* spec = nullptr;
   const mpmgeom::BoundaryGrid* layer = nullptr;
   std::unique_ptr<mpmgeom::LayerLocator> locator;
+  /// Which standard-grid cells the layer meets, and where in them (locate_in_layers() asks the
+  /// locator only about particles that may be in it).
+  mpmgeom::LayerCellFilter cell_filter;
   /// Each layer cell's nodes, a cell's together (`layer->cells` is column-major: one cache line
   /// a node), for alpha_stencil().
   std::vector<std::array<int, kCellNodes>> cell_nodes;
