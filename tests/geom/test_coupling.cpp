@@ -266,6 +266,22 @@ Eigen::Vector3d grid_centre(const GridSpec& g) {
   return c;
 }
 
+/// Natural coordinates in the reference cell of a `dim`-D layer cell, uniform (the wedge's
+/// triangle folded onto itself); samples 0-7 are the cell's corners (points on its boundary).
+Eigen::Vector3d reference_point(int dim, int sample, std::mt19937& rng) {
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  Eigen::Vector3d xi(unit(rng), unit(rng), unit(rng));
+  if (dim == 3 && xi[0] + xi[1] > 1.0) {
+    xi[0] = 1.0 - xi[0];
+    xi[1] = 1.0 - xi[1];
+  }
+  if (sample < 8) {
+    for (int d = 0; d < dim; ++d) xi[d] = (sample >> d) & 1;
+    if (dim == 3 && xi[0] + xi[1] > 1.0) xi[1] = 0.0;
+  }
+  return xi;
+}
+
 int multiplier_at(const Coupling& c, int node) {
   const auto it = std::find(c.multiplier_node.begin(), c.multiplier_node.end(), node);
   EXPECT_NE(it, c.multiplier_node.end()) << "node " << node << " carries no multiplier";
@@ -824,15 +840,7 @@ TEST(Coupling, LayerCellFlagsCoverTheLayer) {
     };
     for (std::size_t c = 0; c < b.cell_count(); ++c) {
       for (int sample = 0; sample < 200; ++sample) {
-        Eigen::Vector3d xi(unit(rng), unit(rng), unit(rng));
-        if (dim == 3 && xi[0] + xi[1] > 1.0) {
-          xi[0] = 1.0 - xi[0];
-          xi[1] = 1.0 - xi[1];
-        }
-        if (sample < 8) {  // corners of the reference cell: points on the cell boundary
-          for (int d = 0; d < dim; ++d) xi[d] = (sample >> d) & 1;
-          if (dim == 3 && xi[0] + xi[1] > 1.0) xi[1] = 0.0;
-        }
+        const Eigen::Vector3d xi = reference_point(dim, sample, rng);
         const Eigen::Vector3d x = mpmgeom::cell_point(b, c, xi);
         EXPECT_EQ(flags[static_cast<std::size_t>(cell_of(x))], 1)
             << "dim " << dim << " cell " << c << " xi " << xi.transpose();
@@ -915,15 +923,7 @@ TEST(Coupling, LayerCellFilterKeepsTheLayerAndDropsWhatLiesBeyondItsFaces) {
     // Every point of every cell, its corners included.
     for (std::size_t c = 0; c < b.cell_count(); ++c) {
       for (int sample = 0; sample < 200; ++sample) {
-        Eigen::Vector3d xi(unit(rng), unit(rng), unit(rng));
-        if (dim == 3 && xi[0] + xi[1] > 1.0) {
-          xi[0] = 1.0 - xi[0];
-          xi[1] = 1.0 - xi[1];
-        }
-        if (sample < 8) {
-          for (int a = 0; a < dim; ++a) xi[a] = (sample >> a) & 1;
-          if (dim == 3 && xi[0] + xi[1] > 1.0) xi[1] = 0.0;
-        }
+        const Eigen::Vector3d xi = reference_point(dim, sample, rng);
         Eigen::Vector3d x = Eigen::Vector3d::Zero();
         x.head(dim) = mpmgeom::cell_point(b, c, xi).head(dim);
         EXPECT_TRUE(filter.may_hold(cell_of(x), x))
