@@ -552,9 +552,9 @@ Coupling couple(const BoundaryGrid& boundary, const GridSpec& grid, CouplingSurf
 
 namespace {
 
-// Calls f(i, c) for every A-cell i (per axis, unused axes 0) that the closed cell meets the
-// bounding box, grown by 1e-9 h, of layer cell c's nodes; `cells` gets the A-cells per axis
-// (unused axes 1). The checks and messages of layer_cell_flags ("what" names the caller).
+// Calls f(index, c) for every A-cell (`index` its linear index, last axis fastest) that the closed
+// cell meets the bounding box, grown by 1e-9 h, of layer cell c's nodes; `cells` gets the A-cells
+// per axis (unused axes 1). The checks and messages of layer_cell_flags ("what" names the caller).
 template <class F>
 void for_each_cell_meeting_the_layer(const BoundaryGrid& boundary, const GridSpec& grid,
                                      const char* what, Eigen::Vector3i& cells, F&& f) {
@@ -607,7 +607,9 @@ void for_each_cell_meeting_the_layer(const BoundaryGrid& boundary, const GridSpe
     Eigen::Vector3i i;
     for (i[0] = lo[0]; i[0] <= hi[0]; ++i[0]) {
       for (i[1] = lo[1]; i[1] <= hi[1]; ++i[1]) {
-        for (i[2] = lo[2]; i[2] <= hi[2]; ++i[2]) f(i, c);
+        for (i[2] = lo[2]; i[2] <= hi[2]; ++i[2]) {
+          f((static_cast<long>(i[0]) * cells[1] + i[1]) * cells[2] + i[2], c);
+        }
       }
     }
   }
@@ -618,12 +620,12 @@ void for_each_cell_meeting_the_layer(const BoundaryGrid& boundary, const GridSpe
 std::vector<std::uint8_t> layer_cell_flags(const BoundaryGrid& boundary, const GridSpec& grid) {
   Eigen::Vector3i cells;
   std::vector<std::uint8_t> flags;
-  for_each_cell_meeting_the_layer(
-      boundary, grid, "layer_cell_flags", cells, [&](const Eigen::Vector3i& i, Eigen::Index) {
-        if (flags.empty()) flags.assign(static_cast<std::size_t>(cells.prod()), 0);
-        flags[static_cast<std::size_t>((static_cast<long>(i[0]) * cells[1] + i[1]) * cells[2] +
-                                       i[2])] = 1;
-      });
+  for_each_cell_meeting_the_layer(boundary, grid, "layer_cell_flags", cells,
+                                  [&](long index, Eigen::Index) {
+                                    if (flags.empty())
+                                      flags.assign(static_cast<std::size_t>(cells.prod()), 0);
+                                    flags[static_cast<std::size_t>(index)] = 1;
+                                  });
   flags.resize(static_cast<std::size_t>(cells.prod()), 0);
   return flags;
 }
@@ -636,17 +638,14 @@ LayerCellFilter::LayerCellFilter(const BoundaryGrid& boundary, const GridSpec& g
   std::unordered_map<long, int> index;
   std::vector<Eigen::Vector3d> direction;
   Eigen::Vector3i cells;
-  const auto linear = [&](const Eigen::Vector3i& i) {
-    return (static_cast<long>(i[0]) * cells[1] + i[1]) * cells[2] + i[2];
-  };
   const auto node = [&](Eigen::Index c, int k) {
     Eigen::Vector3d x = Eigen::Vector3d::Zero();
     x.head(dimension_) = boundary.nodes.row(boundary.cells(c, k)).transpose();
     return x;
   };
   for_each_cell_meeting_the_layer(
-      boundary, grid, "LayerCellFilter", cells, [&](const Eigen::Vector3i& i, Eigen::Index c) {
-        const auto [it, added] = index.try_emplace(linear(i), static_cast<int>(bounds_.size()));
+      boundary, grid, "LayerCellFilter", cells, [&](long cell, Eigen::Index c) {
+        const auto [it, added] = index.try_emplace(cell, static_cast<int>(bounds_.size()));
         if (added) {
           bounds_.emplace_back();
           Bounds& b = bounds_.back();
@@ -679,22 +678,22 @@ LayerCellFilter::LayerCellFilter(const BoundaryGrid& boundary, const GridSpec& g
         bounds_[b].normal[static_cast<std::size_t>(d)] = sum.normalized()[d];
     }
   }
-  for_each_cell_meeting_the_layer(
-      boundary, grid, "LayerCellFilter", cells, [&](const Eigen::Vector3i& i, Eigen::Index c) {
-        Bounds& b = bounds_[static_cast<std::size_t>(index.at(linear(i)))];
-        const double pad = pad_of(c);
-        const Eigen::Vector3d n(b.normal[0], b.normal[1], b.normal[2]);
-        for (int k = 0; k < per_cell; ++k) {
-          const Eigen::Vector3d x = node(c, k);
-          for (int d = 0; d < dimension_; ++d) {
-            const auto u = static_cast<std::size_t>(d);
-            b.lo[u] = std::min(b.lo[u], x[d] - pad);
-            b.hi[u] = std::max(b.hi[u], x[d] + pad);
-          }
-          b.slab_lo = std::min(b.slab_lo, n.dot(x) - pad);
-          b.slab_hi = std::max(b.slab_hi, n.dot(x) + pad);
-        }
-      });
+  for_each_cell_meeting_the_layer(boundary, grid, "LayerCellFilter", cells,
+                                  [&](long cell, Eigen::Index c) {
+                                    Bounds& b = bounds_[static_cast<std::size_t>(index.at(cell))];
+                                    const double pad = pad_of(c);
+                                    const Eigen::Vector3d n(b.normal[0], b.normal[1], b.normal[2]);
+                                    for (int k = 0; k < per_cell; ++k) {
+                                      const Eigen::Vector3d x = node(c, k);
+                                      for (int d = 0; d < dimension_; ++d) {
+                                        const auto u = static_cast<std::size_t>(d);
+                                        b.lo[u] = std::min(b.lo[u], x[d] - pad);
+                                        b.hi[u] = std::max(b.hi[u], x[d] + pad);
+                                      }
+                                      b.slab_lo = std::min(b.slab_lo, n.dot(x) - pad);
+                                      b.slab_hi = std::max(b.slab_hi, n.dot(x) + pad);
+                                    }
+                                  });
   // The two-level index: blocks of 8 cells a side, a held block's cells each an entry.
   constexpr int side = 1 << kBlockShift;
   for (int d = 0; d < 3; ++d) blocks_[d] = d < dimension_ ? (cells[d] + side - 1) / side : 1;
@@ -746,11 +745,6 @@ bool LayerCellFilter::may_hold(const Eigen::Vector3i& cell, const Eigen::Vector3
   }
   const double along = s.normal[0] * x[0] + s.normal[1] * x[1] + s.normal[2] * x[2];
   return along >= s.slab_lo && along <= s.slab_hi;
-}
-
-std::size_t LayerCellFilter::bytes() const {
-  return block_first_.capacity() * sizeof(int) + cell_bounds_.capacity() * sizeof(int) +
-         bounds_.capacity() * sizeof(Bounds);
 }
 
 }  // namespace mpmgeom

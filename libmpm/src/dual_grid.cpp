@@ -504,12 +504,12 @@ void Solver<D>::locate_in_layers() {
         cell = cell * cells[d] + ijk[d];
       }
       if (!coupled_cell_.empty()) near_coupling_[p] = coupled_cell_[static_cast<std::size_t>(cell)];
-      Eigen::Vector3d x = Eigen::Vector3d::Zero();
-      x.head<D>() = P.position[p];
       for (std::size_t wi = 0; wi < dual_.size(); ++wi) {
         // The flag first (a byte, as the filter's cells): most particles' cell has none.
         const auto& flags = dual_[wi].spec->package->cell_flags;
         if (flags.empty() || flags[static_cast<std::size_t>(cell)] == 0) continue;
+        Eigen::Vector3d x = Eigen::Vector3d::Zero();
+        x.head<D>() = P.position[p];
         if (!dual_[wi].cell_filter.may_hold(ijk, x)) continue;
         const auto found = dual_[wi].locator->locate(
             x, previous_wall == static_cast<int>(wi) ? previous_cell : -1);

@@ -93,7 +93,6 @@ class LayerCellFilter {
   /// Whether layer_cell_flags flags the cell (the same cells).
   [[nodiscard]] bool flagged(const Eigen::Vector3i& cell) const { return bounds_of(cell) >= 0; }
   [[nodiscard]] std::size_t flagged_cells() const { return bounds_.size(); }
-  [[nodiscard]] std::size_t bytes() const;
 
  private:
   static constexpr int kBlockShift = 3;  ///< blocks of 8 cells a side
