@@ -331,6 +331,20 @@ void Solver<D>::setup_dual_walls() {
       w.enh.gamma_grid = on_grid(grid, spec.package->wall_coupling.grid);
       w.enh.a_row_of.assign_zero(grid.size());
       w.enh.alpha_col_of.assign(n, -1);
+      // The cells ranked by their node lists (enhanced_assemble() groups particles by them).
+      std::vector<int> by_nodes(cell_count);
+      std::iota(by_nodes.begin(), by_nodes.end(), 0);
+      std::sort(by_nodes.begin(), by_nodes.end(), [&](int a, int b) {
+        const auto& x = w.cell_nodes[static_cast<std::size_t>(a)];
+        const auto& y = w.cell_nodes[static_cast<std::size_t>(b)];
+        return x != y ? x < y : a < b;
+      });
+      w.enh.cell_rank.assign(cell_count, 0);
+      for (std::size_t r = 1; r < cell_count; ++r) {
+        const auto a = static_cast<std::size_t>(by_nodes[r - 1]);
+        const auto b = static_cast<std::size_t>(by_nodes[r]);
+        w.enh.cell_rank[b] = w.enh.cell_rank[a] + (w.cell_nodes[a] != w.cell_nodes[b] ? 1 : 0);
+      }
     } else {
       w.grid_row_of.assign_zero(grid.size());
       w.layer_row_of.assign(n, -1);

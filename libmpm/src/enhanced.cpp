@@ -27,9 +27,15 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <limits>
+#include <numeric>
 #include <type_traits>
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
+#include <tbb/task_arena.h>
 
 #include "alpha_stencil.hpp"
 #include "mpm/solver.hpp"
@@ -70,86 +76,215 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   // Cross mass m^{A,alpha}_IS = sum_p m_p N^A_I N^alpha_S over the layer's particles, on
   // standard-grid nodes above the mass threshold. Particles whose stencils on both grids are the
   // same (the same first standard node, the same boundary cell: about 8 at a time in a layer of
-  // 8 particles per cell) share their (I, S) pairs: their terms are summed per pair first, and
-  // each pair becomes one triplet per group rather than one per particle (the triplets' count,
-  // S^D x the cell's nodes per particle, made this the costliest part of the assembly).
-  auto& cross = e.cross_entries;
-  cross.clear();
+  // 8 particles per cell) share their (I, S) pairs: their terms are summed per group first, the
+  // groups side by side. The rows are then numbered in group order, and each candidate column
+  // sums its groups' terms row by row in group order, the columns side by side: the matrix the
+  // groups' terms as triplets in group order gave through assign_by_columns(), bit for bit, in
+  // about a third of the time (the triplets' count, S^D x the cell's nodes per group, made them
+  // the costliest part of the assembly: docs/performance.md).
+  constexpr int kCell = DualWall<D>::kCellNodes;
+  static_assert(kCell <= 8, "a node's cell terms are bits of a byte");
   dispatch_shape(scene_.shape, [&](auto shape) {
     using Shape = decltype(shape);
     constexpr int kS = Stencil<D, Shape>::S;
     constexpr int kStencil = D == 1 ? kS : D == 2 ? kS * kS : kS * kS * kS;  // nodes
     auto& order = e.cross_order;
-    order.clear();
-    for (std::size_t i = 0; i < layer_list_.size(); ++i) {
-      const auto p = static_cast<std::size_t>(layer_list_[i]);
-      if (P.layer_wall[p] != wall_index) continue;
-      const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
-      int first = 0;
-      for (int d = 0; d < D; ++d) first += st.offset[d][0];
-      order.emplace_back(first, static_cast<int>(i));
+    // The keys side by side; another wall's particles sort last and are cut off.
+    order.resize(layer_list_.size());
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, layer_list_.size(), 512),
+                      [&](const auto& r) {
+                        for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                          const auto p = static_cast<std::size_t>(layer_list_[i]);
+                          if (P.layer_wall[p] != wall_index) {
+                            order[i] = {std::numeric_limits<int>::max(), 0, static_cast<int>(i)};
+                            continue;
+                          }
+                          const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+                          int first = 0;
+                          for (int d = 0; d < D; ++d) first += st.offset[d][0];
+                          const auto cell = static_cast<std::size_t>(layer_at_[i].cell);
+                          order[i] = {first, e.cell_rank[cell], static_cast<int>(i)};
+                        }
+                      });
+    std::sort(order.begin(), order.end());
+    while (!order.empty() && order.back().first == std::numeric_limits<int>::max()) {
+      order.pop_back();
     }
-    // The boundary cells of two layer particles compared by their nodes: < 0, 0, > 0.
-    auto cell_order = [&](int a, int b) {
-      const AlphaStencil<D>& x = layer_stencil_[static_cast<std::size_t>(a)];
-      const AlphaStencil<D>& y = layer_stencil_[static_cast<std::size_t>(b)];
-      if (std::equal(x.node, x.node + x.count, y.node, y.node + y.count)) return 0;
-      return std::lexicographical_compare(x.node, x.node + x.count, y.node, y.node + y.count) ? -1
-                                                                                              : 1;
-    };
-    std::sort(order.begin(), order.end(), [&](const auto& a, const auto& b) {
-      if (a.first != b.first) return a.first < b.first;
-      const int c = cell_order(a.second, b.second);
-      return c != 0 ? c < 0 : a.second < b.second;
-    });
-    constexpr int kCell = std::extent_v<decltype(AlphaStencil<D>::node)>;  // nodes, at most
-    double sum[kStencil][kCell];
-    bool used[kStencil][kCell];
-    int node_at[kStencil];
-    for (std::size_t g = 0; g < order.size();) {
-      std::size_t end = g + 1;
-      while (end < order.size() && order[end].first == order[g].first &&
-             cell_order(order[end].second, order[g].second) == 0) {
-        ++end;
+    auto& group_first = e.cross_group_first;
+    group_first.clear();
+    for (std::size_t t = 0; t < order.size(); ++t) {
+      if (t == 0 || order[t].first != order[t - 1].first || order[t].cell != order[t - 1].cell) {
+        group_first.push_back(static_cast<int>(t));
       }
-      const AlphaStencil<D>& cell = layer_stencil_[static_cast<std::size_t>(order[g].second)];
-      for (int q = 0; q < kStencil; ++q) {
-        for (int k = 0; k < cell.count; ++k) {
-          sum[q][k] = 0.0;
-          used[q][k] = false;
+    }
+    const std::size_t groups = group_first.size();
+    group_first.push_back(static_cast<int>(order.size()));
+
+    e.cross_row.resize(groups * kStencil);
+    e.cross_used.resize(groups * kStencil);
+    e.cross_sum.resize(groups * kStencil * kCell);
+    // Each group's terms, in its particles' order: node q's row holds its grid node for now.
+    // The group's particles share their standard stencil's nodes (and so which carry mass) and
+    // their boundary cell's nodes (and so which are candidate columns).
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, groups, 16), [&](const auto& r) {
+      for (std::size_t g = r.begin(); g != r.end(); ++g) {
+        int* node_at = &e.cross_row[g * kStencil];
+        std::uint8_t* used = &e.cross_used[g * kStencil];
+        double* sum = &e.cross_sum[g * kStencil * kCell];
+        std::fill(used, used + kStencil, std::uint8_t{0});
+        std::fill(sum, sum + kStencil * kCell, 0.0);
+        bool massive[kStencil];
+        for (int t = group_first[g]; t < group_first[g + 1]; ++t) {
+          const auto i = static_cast<std::size_t>(order[static_cast<std::size_t>(t)].place);
+          const auto p = static_cast<std::size_t>(layer_list_[i]);
+          const AlphaStencil<D>& as = layer_stencil_[i];
+          const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
+          if (t == group_first[g]) {
+            int q = 0;
+            st.for_each(grid, [&](int node, double, const Vec<D>&, const Vec<D>&) {
+              node_at[q] = node;
+              massive[q++] = grid.mass[node] > mass_threshold_;
+            });
+          }
+          unsigned columns = 0;  // bit k: the cell's node k is a candidate with N^alpha > 0
+          for (int k = 0; k < as.count; ++k) {
+            if (e.alpha_col_of[as.node[k]] >= 0 && as.N[k] > 0.0) columns |= 1U << k;
+          }
+          if (columns == 0) continue;
+          const double m = P.mass[p];
+          int q = 0;
+          st.for_each(grid, [&](int, double N, const Vec<D>&, const Vec<D>&) {
+            if (N > 0.0 && massive[q]) {
+              const double mN = m * N;
+              for (int k = 0; k < as.count; ++k) {
+                if ((columns & (1U << k)) != 0) sum[q * kCell + k] += mN * as.N[k];
+              }
+              used[q] = static_cast<std::uint8_t>(used[q] | columns);
+            }
+            ++q;
+          });
         }
       }
-      for (std::size_t t = g; t < end; ++t) {
-        const auto i = static_cast<std::size_t>(order[t].second);
-        const auto p = static_cast<std::size_t>(layer_list_[i]);
-        const AlphaStencil<D>& as = layer_stencil_[i];
-        const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
-        const double m = P.mass[p];
-        int q = 0;
-        st.for_each(grid, [&](int node, double N, const Vec<D>&, const Vec<D>&) {
-          node_at[q] = node;
-          if (N > 0.0 && grid.mass[node] > mass_threshold_) {
-            for (int k = 0; k < as.count; ++k) {
-              if (e.alpha_col_of[as.node[k]] < 0 || as.N[k] <= 0.0) continue;
-              sum[q][k] += m * N * as.N[k];
-              used[q][k] = true;
+    });
+    // Rows numbered in group order (node q of group g becomes a row if it has a term); each
+    // column's (group, k) pairs listed in group order, and an upper bound on its entries.
+    const std::size_t columns = candidates.size();
+    // f(column, k) for each node k of group g's cell that some node of its stencil has a term with.
+    auto for_each_column = [&](std::size_t g, auto&& f) {
+      const std::size_t first = static_cast<std::size_t>(group_first[g]);
+      const AlphaStencil<D>& cell = layer_stencil_[static_cast<std::size_t>(order[first].place)];
+      unsigned any = 0;
+      for (int q = 0; q < kStencil; ++q)
+        any |= e.cross_used[g * kStencil + static_cast<std::size_t>(q)];
+      for (int k = 0; k < cell.count; ++k) {
+        if ((any & (1U << k)) != 0) f(static_cast<std::size_t>(e.alpha_col_of[cell.node[k]]), k);
+      }
+    };
+    auto& pair_first = e.cross_pair_first;
+    auto& slab_first = e.cross_slab_first;
+    pair_first.assign(columns + 1, 0);
+    slab_first.assign(columns + 1, 0);
+    for (std::size_t g = 0; g < groups; ++g) {
+      int terms[kCell] = {};
+      for (int q = 0; q < kStencil; ++q) {
+        const std::size_t at = g * kStencil + static_cast<std::size_t>(q);
+        const unsigned used = e.cross_used[at];
+        if (used == 0) continue;
+        e.cross_row[at] = row_of(e.cross_row[at]);
+        for (int k = 0; k < kCell; ++k) terms[k] += static_cast<int>((used >> k) & 1U);
+      }
+      for_each_column(g, [&](std::size_t c, int k) {
+        ++pair_first[c + 1];
+        slab_first[c + 1] += terms[k];
+      });
+    }
+    std::partial_sum(pair_first.begin(), pair_first.end(), pair_first.begin());
+    std::partial_sum(slab_first.begin(), slab_first.end(), slab_first.begin());
+    auto& pairs = e.cross_pairs;
+    pairs.resize(static_cast<std::size_t>(pair_first[columns]));
+    auto& cursor = e.cross_count;  // the pairs' cursors here, then the columns' entry counts
+    cursor.assign(pair_first.begin(), pair_first.end() - 1);
+    for (std::size_t g = 0; g < groups; ++g) {
+      for_each_column(g, [&](std::size_t c, int k) {
+        pairs[static_cast<std::size_t>(cursor[c]++)] = static_cast<int>(g) * kCell + k;
+      });
+    }
+    // Each column's entries: its groups' terms summed row by row in group order, the rows
+    // sorted (a thread's dense accumulator over the rows, reset after each column).
+    const std::size_t rows = e.a_rows.size();
+    e.cross_slab_row.resize(static_cast<std::size_t>(slab_first[columns]));
+    e.cross_slab_value.resize(static_cast<std::size_t>(slab_first[columns]));
+    const auto slots = static_cast<std::size_t>(tbb::this_task_arena::max_concurrency());
+    if (e.cross_column.size() < slots) e.cross_column.resize(slots);
+    for (auto& acc : e.cross_column) {
+      if (acc.sum.size() >= rows) continue;
+      acc.sum.resize(rows);
+      acc.held.resize(rows, 0);
+      acc.rows.reserve(rows);
+    }
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, columns, 16), [&](const auto& r) {
+      auto& acc =
+          e.cross_column[static_cast<std::size_t>(tbb::this_task_arena::current_thread_index())];
+      for (std::size_t c = r.begin(); c != r.end(); ++c) {
+        acc.rows.clear();
+        for (int j = pair_first[c]; j < pair_first[c + 1]; ++j) {
+          const auto g = static_cast<std::size_t>(pairs[static_cast<std::size_t>(j)] / kCell);
+          const int k = pairs[static_cast<std::size_t>(j)] % kCell;
+          for (int q = 0; q < kStencil; ++q) {
+            const std::size_t at = g * kStencil + static_cast<std::size_t>(q);
+            if ((e.cross_used[at] & (1U << k)) == 0) continue;
+            const auto row = static_cast<std::size_t>(e.cross_row[at]);
+            const double value = e.cross_sum[at * kCell + static_cast<std::size_t>(k)];
+            if (acc.held[row] == 0) {
+              acc.held[row] = 1;
+              acc.sum[row] = value;
+              acc.rows.push_back(static_cast<int>(row));
+            } else {
+              acc.sum[row] += value;
             }
           }
-          ++q;
-        });
-      }
-      for (int q = 0; q < kStencil; ++q) {
-        int r = -1;
-        for (int k = 0; k < cell.count; ++k) {
-          if (!used[q][k]) continue;
-          if (r < 0) r = row_of(node_at[q]);
-          cross.emplace_back(r, e.alpha_col_of[cell.node[k]], sum[q][k]);
         }
+        // Nearly sorted (rows are numbered in group order): an insertion sort.
+        for (std::size_t a = 1; a < acc.rows.size(); ++a) {
+          const int row = acc.rows[a];
+          std::size_t b = a;
+          for (; b > 0 && acc.rows[b - 1] > row; --b) acc.rows[b] = acc.rows[b - 1];
+          acc.rows[b] = row;
+        }
+        auto at = static_cast<std::size_t>(slab_first[c]);
+        for (const int row : acc.rows) {
+          const auto ru = static_cast<std::size_t>(row);
+          e.cross_slab_row[at] = row;
+          e.cross_slab_value[at] = acc.sum[ru];
+          acc.held[ru] = 0;
+          ++at;
+        }
+        e.cross_count[c] = static_cast<int>(acc.rows.size());
       }
-      g = end;
-    }
+    });
   });
-
+  // The columns' entries packed into the cross mass over every candidate column, from which K_SS
+  // is read and the kept columns are taken.
+  Sparse& cross_candidates = e.cross_candidates;
+  {
+    const std::size_t columns = candidates.size();
+    reshape(cross_candidates, static_cast<Eigen::Index>(e.a_rows.size()),
+            static_cast<Eigen::Index>(columns));
+    int* outer = cross_candidates.outerIndexPtr();
+    outer[0] = 0;
+    for (std::size_t c = 0; c < columns; ++c) outer[c + 1] = outer[c] + e.cross_count[c];
+    cross_candidates.resizeNonZeros(outer[columns]);
+    int* inner = cross_candidates.innerIndexPtr();
+    double* value = cross_candidates.valuePtr();
+    for (std::size_t c = 0; c < columns; ++c) {
+      const auto from = static_cast<std::size_t>(e.cross_slab_first[c]);
+      const auto n = static_cast<std::size_t>(e.cross_count[c]);
+      std::copy_n(e.cross_slab_row.begin() + static_cast<std::ptrdiff_t>(from), n,
+                  inner + outer[c]);
+      std::copy_n(e.cross_slab_value.begin() + static_cast<std::ptrdiff_t>(from), n,
+                  value + outer[c]);
+    }
+  }
   // Near-linear dependence: K_SS = m^alpha_S - sum_I (C_IS)^2 / m^A_I is the effective mass of
   // the enhancement at S once the standard grid has taken what it can represent. A node whose
   // K_SS is a small fraction of m^alpha_S adds (almost) nothing the standard grid does not have,
@@ -157,11 +292,6 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   std::vector<double>& diag = e.candidate_diagonal;
   diag.resize(candidates.size());
   for (std::size_t c = 0; c < candidates.size(); ++c) diag[c] = w.mass[candidates[c]];
-  // The cross mass over every candidate column (duplicates summed), from which K_SS is read and
-  // the kept columns are taken.
-  Sparse& cross_candidates = e.cross_candidates;
-  assign_by_columns(cross_candidates, static_cast<Eigen::Index>(e.a_rows.size()),
-                    static_cast<Eigen::Index>(candidates.size()), cross, e.assembly_work[0]);
   for (Eigen::Index c = 0; c < cross_candidates.outerSize(); ++c) {
     for (Sparse::InnerIterator it(cross_candidates, c); it; ++it) {
       diag[static_cast<std::size_t>(c)] -=

@@ -325,11 +325,39 @@ struct EnhancedState {
   std::vector<int> candidates, renumber;
   std::vector<double> candidate_diagonal, integral_list;
   std::vector<char> covered;
-  std::vector<Eigen::Triplet<double>> cross_entries, grid_entries, alpha_entries, kkt_entries;
-  /// The layer's particles (their place in the layer list) with their standard stencil's first
-  /// node, sorted so that those with the same stencils on both grids are adjacent: their cross
-  /// mass entries are summed before they become triplets (enhanced_assemble()).
-  std::vector<std::pair<int, int>> cross_order;
+  std::vector<Eigen::Triplet<double>> grid_entries, alpha_entries, kkt_entries;
+  /// The cross mass by groups of layer particles with the same stencils on both grids
+  /// (enhanced_assemble()). A particle's key: its standard stencil's first node, its boundary
+  /// cell's rank among the cells in the order of their node lists (cell_rank: equal lists, equal
+  /// ranks), its place in the layer list; sorted, the groups are the runs of equal (first, cell).
+  struct CrossKey {
+    int first, cell, place;
+    auto operator<=>(const CrossKey&) const = default;
+  };
+  std::vector<CrossKey> cross_order;
+  std::vector<int> cell_rank;  ///< per boundary cell (setup_dual_walls())
+  /// Per group g (cross_group_first[g] .. cross_group_first[g + 1] - 1 in cross_order) and node
+  /// q of its standard stencil: the node's row (its grid node until the rows are numbered), the
+  /// boundary-cell nodes k it has a term with (bit k), and the terms sum_p m_p N^A_q N^alpha_k
+  /// (cross_sum[(g * stencil + q) * kCellNodes + k]).
+  std::vector<int> cross_group_first, cross_row;
+  std::vector<std::uint8_t> cross_used;
+  std::vector<double> cross_sum;
+  /// Per candidate column: its (group, k) pairs in group order (cross_pairs from
+  /// cross_pair_first[c], as g * kCellNodes + k), where its merged entries go in cross_slab (at
+  /// most as many as its terms: from cross_slab_first[c]) and how many there are.
+  std::vector<int> cross_pair_first, cross_pairs, cross_slab_first, cross_count;
+  std::vector<int> cross_slab_row;
+  std::vector<double> cross_slab_value;
+  /// A thread's accumulator of one column (dense over the rows, reset after each column), one
+  /// per thread slot of the task arena (tbb::this_task_arena::current_thread_index()), sized
+  /// before the columns' loop: the loop allocates nothing.
+  struct CrossColumn {
+    std::vector<double> sum;
+    std::vector<char> held;
+    std::vector<int> rows;
+  };
+  std::vector<CrossColumn> cross_column;
   /// assign_by_columns()' and product_into()'s scratch: one per matrix enhanced_assemble()
   /// forms at the same time as another (R^A and R^alpha; K, W and R^A^T M_A^-1 R^A).
   std::vector<int> assembly_work[2];
