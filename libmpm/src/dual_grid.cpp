@@ -657,6 +657,7 @@ void Solver<D>::layer_scatter(bool with_force) {
         w.scatter_nodes.push_back(static_cast<int>(node));
       }
       w.scatter_terms.resize(w.cell_members.size() * DualWall<D>::kCellNodes);
+      if (w.spec->contact.separable) w.touch_terms.resize(w.scatter_terms.size());
     }
   }
   // Each pair's terms, particle by particle (a particle's data read once for its stencil), at
@@ -672,6 +673,28 @@ void Solver<D>::layer_scatter(bool with_force) {
   // spin (the skew part) mended the rolling disk but fed back through the wall constraint: a
   // block on a one-cell incline blew up, and the debris scene threw a particle out at 27 m/s
   // (docs/verification.md, rolling cylinder).
+  //
+  // A separable wall's touch test (layer_walls(), enhanced_assemble()) of the pair (particle at
+  // x, slot k at `node`) goes with its terms: the particle lies over the node's facet (within
+  // the node's share of it plus the particle's half-size, LayerTerms::window) and its near edge
+  // (LayerTerms::reach) is `gap` off the wall there; +infinity where it lies beyond that or the
+  // node is not on the wall. A node's touch gap is the least of its pairs' (the node pass); a
+  // corner node's, per facet, are taken in the node pass.
+  auto touch_term = [](DualWall<D>& w, const LayerTerms& t, const Vec<D>& x, int node, int k,
+                       std::size_t place) {
+    double gap = std::numeric_limits<double>::infinity();
+    const int wi = w.wall_index_of_node[static_cast<std::size_t>(node)];
+    if (wi >= 0) {
+      const auto wu = static_cast<std::size_t>(wi);
+      if (w.corner_first[wu + 1] == w.corner_first[wu]) {
+        const Vec<D> d = x - w.position[static_cast<std::size_t>(node)];
+        const Vec<D>& normal = w.wall_normal[wu];
+        const double along = d.dot(normal);
+        if ((d - along * normal).norm() <= t.window) gap = along - t.reach;
+      }
+    }
+    w.touch_terms[static_cast<std::size_t>(k) * w.cell_members.size() + place] = gap;
+  };
   tbb::parallel_for(
       tbb::blocked_range<std::size_t>(0, layer_list_.size(), 256), [&](const auto& r) {
         for (std::size_t i = r.begin(); i != r.end(); ++i) {
@@ -679,6 +702,7 @@ void Solver<D>::layer_scatter(bool with_force) {
           DualWall<D>& w = dual_[P.layer_wall[p]];
           const bool affine = apic && !w.enhanced && with_force;
           const bool centroids = !with_force && !w.enhanced;
+          const bool touch = with_force && w.spec->contact.separable;
           const LayerTerms& t = layer_terms_[i];
           const AlphaStencil<D>& st = layer_stencil_[i];
           const double m = P.mass[p];
@@ -698,6 +722,7 @@ void Solver<D>::layer_scatter(bool with_force) {
               terms[0] = N * m;
               const Vec<D> force = t.vs * st.dN[k] + N * t.mb;
               for (int a = 0; a < D; ++a) terms[1 + D + a] = force[a];
+              if (touch) touch_term(w, t, P.position[p], st.node[k], k, place);
             } else if (centroids) {
               const Vec<D> centroid = N * m * t.at;
               for (int a = 0; a < D; ++a) terms[1 + D + a] = centroid[a];
@@ -711,8 +736,8 @@ void Solver<D>::layer_scatter(bool with_force) {
   for (auto& w : dual_) {
     const bool touch = with_force && w.spec->contact.separable;
     const bool centroids = !with_force && !w.enhanced;
-    // f(place, term) for each (particle, slot) pair of `node`: the particle's place in the cell
-    // order, and its pair's terms.
+    // f(place, slot, terms) for each (particle, slot) pair of `node`: the particle's place in
+    // the cell order, the node's slot in the particle's cell, and the pair's terms.
     auto for_each_pair = [&](int node, auto&& f) {
       const auto n = static_cast<std::size_t>(node);
       for (int e = w.node_cell_first[n]; e < w.node_cell_first[n + 1]; ++e) {
@@ -720,7 +745,7 @@ void Solver<D>::layer_scatter(bool with_force) {
         const auto c = static_cast<std::size_t>(code / DualWall<D>::kCellNodes);
         const int k = code % DualWall<D>::kCellNodes;
         for (int place = w.cell_first[c]; place < w.cell_first[c + 1]; ++place) {
-          f(place, w.scatter_term(k, static_cast<std::size_t>(place)));
+          f(place, k, w.scatter_term(k, static_cast<std::size_t>(place)));
         }
       }
     };
@@ -729,12 +754,25 @@ void Solver<D>::layer_scatter(bool with_force) {
           for (std::size_t j = r.begin(); j != r.end(); ++j) {
             const int node = w.scatter_nodes[j];
             const auto n = static_cast<std::size_t>(node);
+            // A node on a separable wall takes the least of its pairs' touch gaps (touch_term()),
+            // a corner node its facets' below.
+            const int wi = touch ? w.wall_index_of_node[n] : -1;
+            const auto wu = static_cast<std::size_t>(std::max(wi, 0));
+            const int c0 = wi >= 0 ? w.corner_first[wu] : 0;
+            const int c1 = wi >= 0 ? w.corner_first[wu + 1] : 0;
+            const bool plain = wi >= 0 && c1 == c0;
             double mass = 0.0, momentum[D] = {}, second[D] = {};  // force, or the centroid's
-            for_each_pair(node, [&](int /*place*/, const auto& terms) {
+            double gap = w.touch_gap[n];
+            for_each_pair(node, [&](int place, int k, const auto& terms) {
               mass += terms[0];
               for (int a = 0; a < D; ++a) {
                 momentum[a] += terms[1 + a];
                 second[a] += terms[1 + D + a];
+              }
+              if (plain) {
+                const std::size_t at = static_cast<std::size_t>(k) * w.cell_members.size() +
+                                       static_cast<std::size_t>(place);
+                gap = std::min(gap, w.touch_terms[at]);
               }
             });
             for (int a = 0; a < D; ++a) w.momentum[n][a] = momentum[a];
@@ -744,25 +782,23 @@ void Solver<D>::layer_scatter(bool with_force) {
             if (!with_force) continue;
             w.mass[n] = mass;
             for (int a = 0; a < D; ++a) w.force[n][a] = second[a];
-            const int wi = w.wall_index_of_node[n];
-            if (!touch || wi < 0) continue;
+            if (plain) w.touch_gap[n] = gap;
+            if (wi < 0 || plain) continue;
             const Vec<D>& at_node = w.position[n];
-            for_each_pair(node, [&](int place, const auto& /*terms*/) {
+            for_each_pair(node, [&](int place, int /*slot*/, const auto& /*terms*/) {
               const auto i =
                   static_cast<std::size_t>(w.cell_members[static_cast<std::size_t>(place)]);
               const auto p = static_cast<std::size_t>(layer_list_[i]);
               const LayerTerms& t = layer_terms_[i];
               const Vec<D> d = P.position[p] - at_node;
               // At a concave corner the particle may lie over any of the node's facets.
-              const auto wu = static_cast<std::size_t>(wi);
-              const int c0 = w.corner_first[wu], c1 = w.corner_first[wu + 1];
-              const Vec<D>* normals = c1 > c0 ? &w.corner_normals[c0] : &w.wall_normal[wu];
-              for (int c = 0; c < std::max(1, c1 - c0); ++c) {
-                const double normal = d.dot(normals[c]);
-                if ((d - normal * normals[c]).norm() <= t.window) {
-                  const double gap = normal - t.reach;
-                  w.touch_gap[n] = std::min(w.touch_gap[n], gap);
-                  if (c1 > c0) w.corner_gap[c0 + c] = std::min(w.corner_gap[c0 + c], gap);
+              for (int c = c0; c < c1; ++c) {
+                const Vec<D>& normal = w.corner_normals[static_cast<std::size_t>(c)];
+                const double along = d.dot(normal);
+                if ((d - along * normal).norm() <= t.window) {
+                  const double facet_gap = along - t.reach;
+                  w.touch_gap[n] = std::min(w.touch_gap[n], facet_gap);
+                  w.corner_gap[c] = std::min(w.corner_gap[c], facet_gap);
                 }
               }
             });

@@ -510,6 +510,11 @@ struct DualWall {
   std::array<double, 1 + 2 * D>& scatter_term(int slot, std::size_t place) {
     return scatter_terms[static_cast<std::size_t>(slot) * cell_members.size() + place];
   }
+  /// Separable walls: each pair's touch gap at the same place as its terms (layer_scatter():
+  /// the particle's gap to the wall at the slot's node where the particle lies over the node's
+  /// facet, +infinity elsewhere; a node's touch_gap is the least over its pairs). Not formed for
+  /// corner nodes, whose gaps go per facet (corner_gap).
+  std::vector<double> touch_terms;
   std::size_t layer_particles = 0;
   bool enhanced = false;  ///< superposed field (every particle also on the standard grid)
   EnhancedState<D> enh;
