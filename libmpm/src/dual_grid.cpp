@@ -507,7 +507,7 @@ void Solver<D>::locate_in_layers() {
       // first: particles move a fraction of a cell per step.
       const int previous_wall = P.layer_wall[p];
       const int previous_cell =
-          previous_wall >= 0 ? layer_at_[static_cast<std::size_t>(P.layer_slot[p])].cell : -1;
+          previous_wall >= 0 ? layer_cell_[static_cast<std::size_t>(P.layer_slot[p])] : -1;
       P.layer_wall[p] = -1;
       long cell = 0;
       Eigen::Vector3i ijk = Eigen::Vector3i::Zero();
@@ -550,7 +550,7 @@ void Solver<D>::locate_in_layers() {
   }
   const std::size_t layer_count = layer_chunk_first_.back();
   layer_list_.resize(layer_count);
-  layer_at_.resize(layer_count);
+  layer_cell_.resize(layer_count);
   layer_stencil_.resize(layer_count);
   layer_gradient_.resize(layer_count);
   layer_terms_.resize(layer_count);
@@ -562,9 +562,9 @@ void Solver<D>::locate_in_layers() {
       const auto p = static_cast<std::size_t>(hits[j].particle);
       P.layer_slot[p] = static_cast<int>(i);
       layer_list_[i] = hits[j].particle;
-      layer_at_[i] = hits[j].at;
+      layer_cell_[i] = hits[j].at.cell;
       const DualWall<D>& w = dual_[P.layer_wall[p]];
-      const AlphaStencil<D>& st = layer_stencil_[i] = alpha_stencil(w, layer_at_[i]);
+      const AlphaStencil<D>& st = layer_stencil_[i] = alpha_stencil(w, hits[j].at);
       LayerTerms& t = layer_terms_[i];
       const double volume = P.volume0[p] * P.deformation_gradient[p].determinant();
       t.vs = -volume * P.stress[p];
@@ -577,7 +577,7 @@ void Solver<D>::locate_in_layers() {
       if (w.spec->contact.separable) {
         const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
         t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
-        t.window = w.touch_window[static_cast<std::size_t>(layer_at_[i].cell)] + half;
+        t.window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
       }
       // The MUSL remap's nodal velocity is that of the particles at their centroid, which
       // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced
@@ -629,7 +629,7 @@ void Solver<D>::layer_scatter(bool with_force) {
     for (auto& w : dual_) std::fill(w.cell_first.begin(), w.cell_first.end(), 0);
     for (std::size_t i = 0; i < layer_list_.size(); ++i) {
       DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
-      ++w.cell_first[static_cast<std::size_t>(layer_at_[i].cell) + 1];
+      ++w.cell_first[static_cast<std::size_t>(layer_cell_[i]) + 1];
     }
     for (auto& w : dual_) {
       std::partial_sum(w.cell_first.begin(), w.cell_first.end(), w.cell_first.begin());
@@ -639,7 +639,7 @@ void Solver<D>::layer_scatter(bool with_force) {
     layer_place_.resize(layer_list_.size());
     for (std::size_t i = 0; i < layer_list_.size(); ++i) {
       DualWall<D>& w = dual_[P.layer_wall[static_cast<std::size_t>(layer_list_[i])]];
-      const int place = w.cell_cursor[static_cast<std::size_t>(layer_at_[i].cell)]++;
+      const int place = w.cell_cursor[static_cast<std::size_t>(layer_cell_[i])]++;
       w.cell_members[static_cast<std::size_t>(place)] = static_cast<int>(i);
       layer_place_[i] = place;
     }

@@ -102,7 +102,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
                           const Stencil<D, Shape> st(grid, P.position[p], P.half_width[p]);
                           int first = 0;
                           for (int d = 0; d < D; ++d) first += st.offset[d][0];
-                          const auto cell = static_cast<std::size_t>(layer_at_[i].cell);
+                          const auto cell = static_cast<std::size_t>(layer_cell_[i]);
                           order[i] = {first, e.cell_rank[cell], static_cast<int>(i)};
                         }
                       });

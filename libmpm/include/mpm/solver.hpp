@@ -290,8 +290,9 @@ class Solver final : public Simulation {
   /// computed once by locate_in_layers() for the scatters, gathers and the remap of the step.
   std::vector<int> layer_list_;
   std::vector<AlphaStencil<D>> layer_stencil_;
-  /// Per layer particle: its layer cell, natural coordinates there and the map's Jacobian.
-  std::vector<mpmgeom::LayerLocator::Location> layer_at_;
+  /// Per layer particle: its layer cell (its natural coordinates and the map's Jacobian there
+  /// go into its basis, layer_stencil_).
+  std::vector<int> layer_cell_;
   std::vector<Mat<D>> layer_gradient_;  ///< and its velocity gradient this step
   /// Per layer particle, for layer_scatter() (locate_in_layers() fills them): -V sigma and m b
   /// at the step's start, its point of the isoparametric map (`at`, for the remap's
