@@ -80,8 +80,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
   // groups side by side. The rows are then numbered in group order, and each candidate column
   // sums its groups' terms row by row in group order, the columns side by side: the matrix the
   // groups' terms as triplets in group order gave through assign_by_columns(), bit for bit, in
-  // about a third of the time (the triplets' count, S^D x the cell's nodes per group, made them
-  // the costliest part of the assembly: docs/performance.md).
+  // two thirds of the time on one thread (the triplets, S^D x the cell's nodes per group, and
+  // their sort into columns were the costliest part of the assembly: docs/performance.md).
   constexpr int kCell = DualWall<D>::kCellNodes;
   static_assert(kCell <= 8, "a node's cell terms are bits of a byte");
   dispatch_shape(scene_.shape, [&](auto shape) {
@@ -124,8 +124,9 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     e.cross_used.resize(groups * kStencil);
     e.cross_sum.resize(groups * kStencil * kCell);
     // Each group's terms, in its particles' order: node q's row holds its grid node for now.
-    // The group's particles share their standard stencil's nodes (and so which carry mass) and
-    // their boundary cell's nodes (and so which are candidate columns).
+    // The group's particles share their standard stencil's nodes (which of them carry mass is
+    // read once per group) and their boundary cell's nodes (which of them are candidate columns
+    // with N^alpha > 0 is read once per particle, not once per stencil node).
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, groups, 16), [&](const auto& r) {
       for (std::size_t g = r.begin(); g != r.end(); ++g) {
         int* node_at = &e.cross_row[g * kStencil];
