@@ -683,15 +683,11 @@ void Solver<D>::layer_scatter(bool with_force) {
   auto touch_term = [](DualWall<D>& w, const LayerTerms& t, const Vec<D>& x, int node, int k,
                        std::size_t place) {
     double gap = std::numeric_limits<double>::infinity();
-    const int wi = w.wall_index_of_node[static_cast<std::size_t>(node)];
-    if (wi >= 0) {
-      const auto wu = static_cast<std::size_t>(wi);
-      if (w.corner_first[wu + 1] == w.corner_first[wu]) {
-        const Vec<D> d = x - w.position[static_cast<std::size_t>(node)];
-        const Vec<D>& normal = w.wall_normal[wu];
-        const double along = d.dot(normal);
-        if ((d - along * normal).norm() <= t.window) gap = along - t.reach;
-      }
+    if (const int wi = w.flat_wall_index(static_cast<std::size_t>(node)); wi >= 0) {
+      const Vec<D> d = x - w.position[static_cast<std::size_t>(node)];
+      const Vec<D>& normal = w.wall_normal[static_cast<std::size_t>(wi)];
+      const double along = d.dot(normal);
+      if ((d - along * normal).norm() <= t.window) gap = along - t.reach;
     }
     w.touch_terms[static_cast<std::size_t>(k) * w.cell_members.size() + place] = gap;
   };
@@ -757,10 +753,7 @@ void Solver<D>::layer_scatter(bool with_force) {
             // A node on a separable wall takes the least of its pairs' touch gaps (touch_term()),
             // a corner node its facets' below.
             const int wi = touch ? w.wall_index_of_node[n] : -1;
-            const auto wu = static_cast<std::size_t>(std::max(wi, 0));
-            const int c0 = wi >= 0 ? w.corner_first[wu] : 0;
-            const int c1 = wi >= 0 ? w.corner_first[wu + 1] : 0;
-            const bool plain = wi >= 0 && c1 == c0;
+            const bool plain = touch && w.flat_wall_index(n) >= 0;
             double mass = 0.0, momentum[D] = {}, second[D] = {};  // force, or the centroid's
             double gap = w.touch_gap[n];
             for_each_pair(node, [&](int place, int k, const auto& terms) {
@@ -784,6 +777,8 @@ void Solver<D>::layer_scatter(bool with_force) {
             for (int a = 0; a < D; ++a) w.force[n][a] = second[a];
             if (plain) w.touch_gap[n] = gap;
             if (wi < 0 || plain) continue;
+            const auto wu = static_cast<std::size_t>(wi);
+            const int c0 = w.corner_first[wu], c1 = w.corner_first[wu + 1];
             const Vec<D>& at_node = w.position[n];
             for_each_pair(node, [&](int place, int /*slot*/, const auto& /*terms*/) {
               const auto i =

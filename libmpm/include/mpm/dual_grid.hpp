@@ -413,6 +413,14 @@ struct DualWall {
   std::vector<int> corner_first;
   std::vector<Vec<D>> corner_normals;
   std::vector<int> corner_part;  ///< the part of the (first) facet with each corner normal
+  /// Boundary node n's index in wall_nodes if it is on Gamma with a single facet normal
+  /// (wall_normal; not a corner), else -1.
+  [[nodiscard]] int flat_wall_index(std::size_t n) const {
+    const int wi = wall_index_of_node[n];
+    if (wi < 0) return -1;
+    const auto wu = static_cast<std::size_t>(wi);
+    return corner_first[wu + 1] == corner_first[wu] ? wi : -1;
+  }
   /// Per corner normal, as touch_gap per node: the material's gap to that facet near the node.
   std::vector<double> corner_gap;
   /// Per boundary node (Gamma nodes only): min over the layer particles lying over its share of
