@@ -221,6 +221,57 @@ class PartTimer {
   double factorising_;
 };
 
+// Records what the coupling in hand was assembled from (DualWall::support_recorded): the
+// carried multipliers and each node of their supports once, with whether it carries mass
+// above `threshold`.
+template <int D, class Masses>
+void record_support(DualWall<D>& w, const Masses& grid_mass, double threshold) {
+  w.recorded_carried = w.carried_multipliers;
+  w.support_grid_nodes.clear();
+  w.support_layer_nodes.clear();
+  for (const int mu : w.carried_multipliers) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
+      const auto node = static_cast<std::size_t>(it.row());
+      if (w.support_grid_mark[node] != 0) continue;
+      w.support_grid_mark[node] = 1;
+      w.support_grid_nodes.push_back(static_cast<int>(node));
+    }
+    for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
+      const auto node = static_cast<std::size_t>(it.row());
+      if (w.support_layer_mark[node] != 0) continue;
+      w.support_layer_mark[node] = 1;
+      w.support_layer_nodes.push_back(static_cast<int>(node));
+    }
+  }
+  w.support_grid_above.resize(w.support_grid_nodes.size());
+  for (std::size_t i = 0; i < w.support_grid_nodes.size(); ++i) {
+    const auto node = static_cast<std::size_t>(w.support_grid_nodes[i]);
+    w.support_grid_mark[node] = 0;
+    w.support_grid_above[i] = grid_mass[node] > threshold ? 1 : 0;
+  }
+  w.support_layer_above.resize(w.support_layer_nodes.size());
+  for (std::size_t i = 0; i < w.support_layer_nodes.size(); ++i) {
+    const auto node = static_cast<std::size_t>(w.support_layer_nodes[i]);
+    w.support_layer_mark[node] = 0;
+    w.support_layer_above[i] = w.mass[node] > threshold ? 1 : 0;
+  }
+  w.support_recorded = true;
+}
+
+// True if every recorded support node is on the same side of `threshold` as when recorded.
+template <int D, class Masses>
+bool support_unchanged(const DualWall<D>& w, const Masses& grid_mass, double threshold) {
+  for (std::size_t i = 0; i < w.support_grid_nodes.size(); ++i) {
+    const bool above = grid_mass[static_cast<std::size_t>(w.support_grid_nodes[i])] > threshold;
+    if (above != (w.support_grid_above[i] != 0)) return false;
+  }
+  for (std::size_t i = 0; i < w.support_layer_nodes.size(); ++i) {
+    const bool above = w.mass[static_cast<std::size_t>(w.support_layer_nodes[i])] > threshold;
+    if (above != (w.support_layer_above[i] != 0)) return false;
+  }
+  return true;
+}
+
 }  // namespace
 
 template <int D>
@@ -348,6 +399,8 @@ void Solver<D>::setup_dual_walls() {
     } else {
       w.grid_row_of.assign_zero(grid.size());
       w.layer_row_of.assign(n, -1);
+      w.support_grid_mark.assign_zero(grid.size());
+      w.support_layer_mark.assign(n, 0);
     }
 
     // Gamma nodes and the part each reports to (from the last wall facet that holds it; a corner
@@ -1009,28 +1062,6 @@ void Solver<D>::layer_couple(bool remapped) {
       // Assemble the active coupling and its Schur complement once per step; the MUSL remap
       // reuses it (the masses do not change).
       const PartTimer<D> timer(w, w.assembly_seconds);
-      for (const int node : w.layer_rows) w.layer_row_of[node] = -1;
-      // The step before's rows and entries are kept aside (swapped, not copied) to be compared
-      // with this step's below.
-      std::swap(w.grid_rows, w.kept_grid_rows);
-      std::swap(w.layer_rows, w.kept_layer_rows);
-      std::swap(w.grid_entries, w.kept_grid_entries);
-      std::swap(w.layer_entries, w.kept_layer_entries);
-      w.active_multipliers.clear();
-      w.grid_rows.clear();
-      w.layer_rows.clear();
-      auto compact = [](std::vector<int>& row_of, std::vector<int>& rows, int node) {
-        int& row = row_of[static_cast<std::size_t>(node)];
-        if (row < 0) {
-          row = static_cast<int>(rows.size());
-          rows.push_back(node);
-        }
-        return row;
-      };
-      std::vector<Eigen::Triplet<double>>& ga = w.grid_entries;
-      std::vector<Eigen::Triplet<double>>& ba = w.layer_entries;
-      ga.clear();
-      ba.clear();
       // The multipliers one of whose Phi nodes carries mass, in increasing order (those nodes
       // are among the ones the layer's particles reach).
       std::vector<int>& carried = w.carried_multipliers;
@@ -1041,51 +1072,90 @@ void Solver<D>::layer_couple(bool remapped) {
       }
       std::sort(carried.begin(), carried.end());
       carried.erase(std::unique(carried.begin(), carried.end()), carried.end());
-      for (const int mu : carried) {
-        double grid_sum = 0.0, boundary_sum = 0.0;
-        for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
-          if (grid.mass[it.row()] > coupling_threshold_) grid_sum += it.value();
-        }
-        for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
-          if (w.mass[it.row()] > coupling_threshold_) boundary_sum += it.value();
-        }
-        if (grid_sum <= 1e-12 * w.multiplier_integral[mu] || boundary_sum <= 0.0) continue;
-        const int col = static_cast<int>(w.active_multipliers.size());
-        w.active_multipliers.push_back(mu);
-        const double gs = w.multiplier_integral[mu] / grid_sum;
-        const double bs = w.multiplier_integral[mu] / boundary_sum;
-        for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
-          const int node = static_cast<int>(it.row());
-          if (grid.mass[node] > coupling_threshold_) {
-            ga.emplace_back(node_row(w.grid_row_of, w.grid_rows, node), col, gs * it.value());
+      // The active coupling is fixed by which multipliers are carried and which nodes of their
+      // supports carry mass above the threshold (the entries are R^A's and R^alpha's, rescaled
+      // by sums over those nodes): where both are as when the coupling in hand was assembled
+      // (a resting body: its layer's masses change, not which nodes hold them), the rows,
+      // columns and entries would come out the same, and only the masses below are new.
+      const bool unchanged = w.support_recorded && carried == w.recorded_carried &&
+                             support_unchanged(w, grid.mass, coupling_threshold_);
+      if (unchanged) ++w.kept_assemblies;
+      if (!unchanged) {
+        w.support_recorded = false;
+        for (const int node : w.layer_rows) w.layer_row_of[node] = -1;
+        // The step before's rows and entries are kept aside (swapped, not copied) to be compared
+        // with this step's below.
+        std::swap(w.grid_rows, w.kept_grid_rows);
+        std::swap(w.layer_rows, w.kept_layer_rows);
+        std::swap(w.grid_entries, w.kept_grid_entries);
+        std::swap(w.layer_entries, w.kept_layer_entries);
+        w.active_multipliers.clear();
+        w.grid_rows.clear();
+        w.layer_rows.clear();
+        auto compact = [](std::vector<int>& row_of, std::vector<int>& rows, int node) {
+          int& row = row_of[static_cast<std::size_t>(node)];
+          if (row < 0) {
+            row = static_cast<int>(rows.size());
+            rows.push_back(node);
           }
-        }
-        for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
-          const int node = static_cast<int>(it.row());
-          if (w.mass[node] > coupling_threshold_) {
-            ba.emplace_back(compact(w.layer_row_of, w.layer_rows, node), col, bs * it.value());
+          return row;
+        };
+        std::vector<Eigen::Triplet<double>>& ga = w.grid_entries;
+        std::vector<Eigen::Triplet<double>>& ba = w.layer_entries;
+        ga.clear();
+        ba.clear();
+        for (const int mu : carried) {
+          double grid_sum = 0.0, boundary_sum = 0.0;
+          for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
+            if (grid.mass[it.row()] > coupling_threshold_) grid_sum += it.value();
+          }
+          for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
+            if (w.mass[it.row()] > coupling_threshold_) boundary_sum += it.value();
+          }
+          if (grid_sum <= 1e-12 * w.multiplier_integral[mu] || boundary_sum <= 0.0) continue;
+          const int col = static_cast<int>(w.active_multipliers.size());
+          w.active_multipliers.push_back(mu);
+          const double gs = w.multiplier_integral[mu] / grid_sum;
+          const double bs = w.multiplier_integral[mu] / boundary_sum;
+          for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
+            const int node = static_cast<int>(it.row());
+            if (grid.mass[node] > coupling_threshold_) {
+              ga.emplace_back(node_row(w.grid_row_of, w.grid_rows, node), col, gs * it.value());
+            }
+          }
+          for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
+            const int node = static_cast<int>(it.row());
+            if (w.mass[node] > coupling_threshold_) {
+              ba.emplace_back(compact(w.layer_row_of, w.layer_rows, node), col, bs * it.value());
+            }
           }
         }
       }
       const auto k = static_cast<Eigen::Index>(w.active_multipliers.size());
       if (k == 0) continue;
-      // The same rows and entries as the step before's (the same nodes above the coupling
-      // threshold: a resting body), which R^A and R^alpha hold already (the step before's were
-      // assigned to them unless it had no multiplier, and then it had no entry either): only
-      // the masses below change.
-      auto same = [](const std::vector<Eigen::Triplet<double>>& a,
-                     const std::vector<Eigen::Triplet<double>>& b) {
-        return std::ranges::equal(a, b, [](const auto& x, const auto& y) {
-          return x.row() == y.row() && x.col() == y.col() && x.value() == y.value();
-        });
-      };
-      const bool same_rows = w.grid_rows == w.kept_grid_rows && w.layer_rows == w.kept_layer_rows;
-      if (!same_rows) ++w.reshapes;
-      if (!(same_rows && same(ga, w.kept_grid_entries) && same(ba, w.kept_layer_entries))) {
-        assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k, ga,
-                          w.assembly_work);
-        assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k, ba,
-                          w.assembly_work);
+      if (!unchanged) {
+        // The same rows and entries as the step before's (the same nodes above the coupling
+        // threshold: a resting body), which R^A and R^alpha hold already (the step before's were
+        // assigned to them unless it had no multiplier, and then it had no entry either): only
+        // the masses below change. The supports are then recorded, so that the next steps can
+        // tell the same without assembling (`unchanged`).
+        auto same = [](const std::vector<Eigen::Triplet<double>>& a,
+                       const std::vector<Eigen::Triplet<double>>& b) {
+          return std::ranges::equal(a, b, [](const auto& x, const auto& y) {
+            return x.row() == y.row() && x.col() == y.col() && x.value() == y.value();
+          });
+        };
+        const bool same_rows = w.grid_rows == w.kept_grid_rows && w.layer_rows == w.kept_layer_rows;
+        if (!same_rows) ++w.reshapes;
+        if (!(same_rows && same(w.grid_entries, w.kept_grid_entries) &&
+              same(w.layer_entries, w.kept_layer_entries))) {
+          assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k,
+                            w.grid_entries, w.assembly_work);
+          assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k,
+                            w.layer_entries, w.assembly_work);
+        } else {
+          record_support(w, grid.mass, coupling_threshold_);
+        }
       }
       // S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha for mortar) + shift I; every kept
       // row is above the coupling threshold, so its mass is positive. More multipliers than the

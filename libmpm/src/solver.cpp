@@ -1372,6 +1372,7 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     const std::string phi = "solver.coupling_" + std::to_string(i) + ".";
     const auto& coupling = c.integer(phi + "factored", 4);
     w.schur_factored = false;
+    w.support_recorded = false;  // the next step assembles its coupling in full
     w.factored_structure = static_cast<std::size_t>(coupling[1]);
     w.refine_wait = static_cast<int>(coupling[2]);
     w.refine_backoff = static_cast<int>(coupling[3]);

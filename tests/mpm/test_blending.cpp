@@ -18,6 +18,7 @@
 #include <functional>
 #include <limits>
 #include <numbers>
+#include <numeric>
 #include <string>
 #include <tuple>
 #include <utility>
@@ -1123,6 +1124,98 @@ TEST(PhiCoupling, InterfaceVelocitiesAgreeToTheSceneTolerance) {
   }
   // The default 1e-6 against 1e-10: 7,416 passes against 10,522 in this run.
   EXPECT_LT(passes_before, tight.passes);
+}
+
+// The Phi coupling in hand after every step is the one the step's masses give, assembled from
+// scratch here: its multipliers those of the carried ones (a Phi node above the coupling
+// threshold) whose supports hold mass on both grids, each column the nodes of its support above
+// the threshold with R's entries rescaled to the multiplier's integral, bit for bit. A step
+// whose carried multipliers and support nodes are on the same side of the threshold as when the
+// coupling in hand was assembled keeps it without assembling (layer_couple()); a block resting
+// on a level floor keeps it in most steps, one sliding down a 36 degree incline changes it.
+void expect_coupling_of_the_masses(double theta, double mu, double end, double kept_share,
+                                   double multiplier_radius = 0.0) {
+  InclineScene in = incline_2d(theta, mu, kInclineH, 0.5, "mortar");
+  in.doc["time"]["end"] = end;
+  in.doc["walls"][0]["multiplier_radius"] = multiplier_radius;
+  const Scene scene = parse_scene(in.doc, "<block on a mortar wall>");
+  Solver<2> s(scene);
+  const double mean_mass = std::accumulate(s.particles.mass.begin(), s.particles.mass.end(), 0.0) /
+                           static_cast<double>(s.particles.size());
+  const double threshold =
+      std::max(scene.mass_threshold, scene.coupling_mass_threshold) * mean_mass;
+  std::size_t steps = 0, checked = 0;
+  run_until(s, scene, scene.end_time, [&](double, double) {
+    ++steps;
+    const DualWall<2>& w = s.dual_walls()[0];
+    std::vector<int> carried;
+    for (std::size_t n = 0; n < w.mass.size(); ++n) {
+      const int m = w.multiplier_of_node[n];
+      if (m >= 0 && w.mass[n] > threshold) carried.push_back(m);
+    }
+    std::sort(carried.begin(), carried.end());
+    carried.erase(std::unique(carried.begin(), carried.end()), carried.end());
+    std::vector<int> active;
+    // Per active multiplier, its (node, value) entries on either grid.
+    std::vector<std::vector<std::pair<int, double>>> grid_columns, layer_columns;
+    for (const int m : carried) {
+      double grid_sum = 0.0, layer_sum = 0.0;
+      for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, m); it; ++it) {
+        if (s.grid.mass[it.row()] > threshold) grid_sum += it.value();
+      }
+      for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, m); it; ++it) {
+        if (w.mass[static_cast<std::size_t>(it.row())] > threshold) layer_sum += it.value();
+      }
+      if (grid_sum <= 1e-12 * w.multiplier_integral[m] || layer_sum <= 0.0) continue;
+      active.push_back(m);
+      auto& g = grid_columns.emplace_back();
+      auto& l = layer_columns.emplace_back();
+      const double gs = w.multiplier_integral[m] / grid_sum,
+                   ls = w.multiplier_integral[m] / layer_sum;
+      for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, m); it; ++it) {
+        if (s.grid.mass[it.row()] > threshold) g.emplace_back(it.row(), gs * it.value());
+      }
+      for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, m); it; ++it) {
+        if (w.mass[static_cast<std::size_t>(it.row())] > threshold) {
+          l.emplace_back(it.row(), ls * it.value());
+        }
+      }
+    }
+    ASSERT_EQ(w.active_multipliers, active) << "step " << steps;
+    if (active.empty()) return;
+    auto columns_of = [](const Eigen::SparseMatrix<double>& r, const std::vector<int>& rows) {
+      std::vector<std::vector<std::pair<int, double>>> out(static_cast<std::size_t>(r.cols()));
+      for (Eigen::Index c = 0; c < r.cols(); ++c) {
+        for (Eigen::SparseMatrix<double>::InnerIterator it(r, c); it; ++it) {
+          out[static_cast<std::size_t>(c)].emplace_back(rows[static_cast<std::size_t>(it.row())],
+                                                        it.value());
+        }
+        std::sort(out[static_cast<std::size_t>(c)].begin(), out[static_cast<std::size_t>(c)].end());
+      }
+      return out;
+    };
+    for (auto& c : grid_columns) std::sort(c.begin(), c.end());
+    for (auto& c : layer_columns) std::sort(c.begin(), c.end());
+    ASSERT_EQ(columns_of(w.grid_active, w.grid_rows), grid_columns) << "step " << steps;
+    ASSERT_EQ(columns_of(w.boundary_active, w.layer_rows), layer_columns) << "step " << steps;
+    ++checked;
+  });
+  EXPECT_FALSE(s.fault().has_value()) << *s.fault();
+  const DualWall<2>& w = s.dual_walls()[0];
+  std::printf(
+      "theta %.0f, multiplier radius %.0f: %zu steps, %zu with a coupling checked, %zu kept "
+      "without assembling\n",
+      theta, multiplier_radius, steps, checked, w.kept_assemblies);
+  EXPECT_GT(checked, steps / 2);
+  EXPECT_GE(static_cast<double>(w.kept_assemblies), kept_share * static_cast<double>(steps));
+}
+
+TEST(PhiCoupling, TheCouplingInHandIsTheOneTheStepsMassesGive) {
+  expect_coupling_of_the_masses(0.0, 0.3, 0.3, 0.5);   // resting: kept in most steps
+  expect_coupling_of_the_masses(36.0, 0.3, 0.3, 0.0);  // sliding: assembled as it changes
+  // Merged multipliers: one is carried while any of its Phi nodes is, so its support's nodes
+  // on Phi can leave while it stays.
+  expect_coupling_of_the_masses(36.0, 0.3, 0.3, 0.0, 1.0);
 }
 
 // Enhanced solves its contact system to the same tolerance, its impulse unknowns measured as

@@ -454,6 +454,19 @@ struct DualWall {
   /// this step), sized to the grids.
   NodeArray<int> grid_row_of;
   std::vector<int> layer_row_of;
+  /// What the coupling in hand (grid_active, boundary_active and their rows) was assembled
+  /// from, recorded when a step assembled the same one as the step before (layer_couple()):
+  /// the carried multipliers, and the nodes of their supports on either grid with whether
+  /// each carried mass above the coupling threshold (1) or not (0). While all of these hold,
+  /// a step's assembly would give the same rows and entries, and is skipped. The marks are
+  /// scratch for collecting each node once (all 0 between steps; page-backed on the grid).
+  bool support_recorded = false;
+  std::size_t kept_assemblies = 0;  ///< steps that kept the coupling in hand this way
+  std::vector<int> recorded_carried;
+  std::vector<int> support_grid_nodes, support_layer_nodes;
+  std::vector<std::uint8_t> support_grid_above, support_layer_above;
+  NodeArray<std::uint8_t> support_grid_mark;
+  std::vector<std::uint8_t> support_layer_mark;
   /// The Schur complement S = R^A^T M_A^-1 R^A (+ R^alpha^T M_alpha^-1 R^alpha) + shift I on
   /// the active multipliers is kept as its factors (this step's inverse masses of the kept rows
   /// and the shift); `schur` holds a factorisation (held by pointer: Eigen's solvers cannot be
