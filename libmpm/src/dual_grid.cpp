@@ -630,7 +630,8 @@ void Solver<D>::locate_in_layers() {
       if (w.spec->contact.separable) {
         const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
         t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
-        t.window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
+        const double window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
+        t.window_squared = window * window;
       }
       // The MUSL remap's nodal velocity is that of the particles at their centroid, which
       // layer_affine() fits at: the particle's point of the isoparametric map (Enhanced
@@ -729,9 +730,9 @@ void Solver<D>::layer_scatter(bool with_force) {
   //
   // A separable wall's touch test (layer_walls(), enhanced_assemble()) of the pair (particle at
   // x, slot k at `node`) goes with its terms: the particle lies over the node's facet (within
-  // the node's share of it plus the particle's half-size, LayerTerms::window) and its near edge
-  // (LayerTerms::reach) is `gap` off the wall there; +infinity where it lies beyond that or the
-  // node is not on the wall. A node's touch gap is the least of its pairs' (the node pass); a
+  // the node's share of it plus the particle's half-size, LayerTerms::window_squared) and its near
+  // edge (LayerTerms::reach) is `gap` off the wall there; +infinity where it lies beyond that or
+  // the node is not on the wall. A node's touch gap is the least of its pairs' (the node pass); a
   // corner node's, per facet, are taken in the node pass.
   auto touch_term = [](DualWall<D>& w, const LayerTerms& t, const Vec<D>& x, int node, int k,
                        std::size_t place) {
@@ -740,7 +741,7 @@ void Solver<D>::layer_scatter(bool with_force) {
       const Vec<D> d = x - w.position[static_cast<std::size_t>(node)];
       const Vec<D>& normal = w.wall_normal[static_cast<std::size_t>(wi)];
       const double along = d.dot(normal);
-      if ((d - along * normal).norm() <= t.window) gap = along - t.reach;
+      if ((d - along * normal).squaredNorm() <= t.window_squared) gap = along - t.reach;
     }
     w.touch_terms[static_cast<std::size_t>(k) * w.cell_members.size() + place] = gap;
   };
@@ -843,7 +844,7 @@ void Solver<D>::layer_scatter(bool with_force) {
               for (int c = c0; c < c1; ++c) {
                 const Vec<D>& normal = w.corner_normals[static_cast<std::size_t>(c)];
                 const double along = d.dot(normal);
-                if ((d - along * normal).norm() <= t.window) {
+                if ((d - along * normal).squaredNorm() <= t.window_squared) {
                   const double facet_gap = along - t.reach;
                   w.touch_gap[n] = std::min(w.touch_gap[n], facet_gap);
                   w.corner_gap[c] = std::min(w.corner_gap[c], facet_gap);

@@ -296,11 +296,12 @@ class Solver final : public Simulation {
   std::vector<Mat<D>> layer_gradient_;  ///< and its velocity gradient this step
   /// Per layer particle, for layer_scatter() (locate_in_layers() fills them): -V sigma and m b
   /// at the step's start, its point of the isoparametric map (`at`, for the remap's
-  /// centroids), and the touch test's reach and window (separable walls).
+  /// centroids), and the touch test's reach and the square of its window (separable walls:
+  /// compared with squared distances, no square root per pair).
   struct LayerTerms {
     Vec<D> mb, at;
     Mat<D> vs;
-    double reach, window;
+    double reach, window_squared;
   };
   std::vector<LayerTerms> layer_terms_;
   /// Per layer particle: its place in its wall's cell order (DualWall::cell_members).
