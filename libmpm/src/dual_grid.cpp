@@ -293,6 +293,7 @@ std::vector<CouplingWork> Solver<D>::coupling_work() const {
     c.factorizations = w.factorizations + w.enh.factorizations;
     c.refinement_passes = w.refinements + w.enh.refinements;
     c.reshaped_steps = w.reshapes;
+    c.kept_steps = w.kept_assemblies;
     c.active_set_passes = w.enh.active_set_passes;
     c.unsettled_steps = w.enh.unsettled_steps;
     c.kept_released = w.enh.kept_released;

@@ -729,6 +729,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
                                                    {"kept_released", c.kept_released}};
     } else {
       summary["coupling"][c.wall]["reshaped_steps"] = c.reshaped_steps;
+      summary["coupling"][c.wall]["kept_steps"] = c.kept_steps;
     }
   }
   // The standard grid's memory: its node arrays are backed only where particles have been.

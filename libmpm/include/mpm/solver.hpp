@@ -73,6 +73,10 @@ struct CouplingWork {
   /// coupling threshold): its matrices took a new shape, solved against the factorisation in
   /// hand when the same multipliers are active.
   std::size_t reshaped_steps = 0;
+  /// Blending: steps that kept the coupling in hand without assembling it (its carried
+  /// multipliers and their supports' nodes on the same side of the mass threshold as when it
+  /// was assembled: a resting layer).
+  std::size_t kept_steps = 0;
   /// Enhanced: the contact active set's passes, the steps it had not settled after 30 (their
   /// last pass's states stand), and the re-additions refused to a multiplier released twice in
   /// a step (its gap closing again: the loop would alternate; docs/enhanced.md).
