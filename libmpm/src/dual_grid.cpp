@@ -1081,8 +1081,9 @@ void Solver<D>::layer_couple(bool remapped) {
       // columns and entries would come out the same, and only the masses below are new.
       const bool unchanged = w.support_recorded && carried == w.recorded_carried &&
                              support_unchanged(w, grid.mass, coupling_threshold_);
-      if (unchanged) ++w.kept_assemblies;
-      if (!unchanged) {
+      if (unchanged) {
+        ++w.kept_assemblies;
+      } else {
         w.support_recorded = false;
         for (const int node : w.layer_rows) w.layer_row_of[node] = -1;
         // The step before's rows and entries are kept aside (swapped, not copied) to be compared
