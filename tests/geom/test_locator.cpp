@@ -61,8 +61,10 @@ Eigen::Vector3d bowl_normal(double x, double y) {
 }
 
 /// 3D: a ring 1 <= r <= 2 of the triangulated bowl, wedges extruded along the vertex normals by
-/// `thickness` in `layers` sub-layers (node level k at k * thickness / layers).
-BoundaryGrid ring_layer(int radial, int around, int layers, double thickness) {
+/// `thickness` in `layers` sub-layers (node level k at k * thickness / layers). `flat`: the ring
+/// on the plane z = 0.2 instead, extruded along +z (a wall over a plane: the wedges' maps are
+/// affine, Newton converges in one step).
+BoundaryGrid ring_layer(int radial, int around, int layers, double thickness, bool flat = false) {
   BoundaryGrid g;
   g.dimension = 3;
   g.layers = layers;
@@ -77,8 +79,8 @@ BoundaryGrid ring_layer(int radial, int around, int layers, double thickness) {
         const double r = 1.0 + static_cast<double>(i) / radial;
         const double theta = 2.0 * std::numbers::pi * j / around;
         const double x = r * std::cos(theta), y = r * std::sin(theta);
-        const Eigen::Vector3d n = bowl_normal(x, y);
-        const Eigen::Vector3d w(x, y, bowl_height(x, y));
+        const Eigen::Vector3d n = flat ? Eigen::Vector3d::UnitZ() : bowl_normal(x, y);
+        const Eigen::Vector3d w(x, y, flat ? 0.2 : bowl_height(x, y));
         const Eigen::Index row = static_cast<Eigen::Index>(level) * wall_nodes + id(i, j);
         g.nodes.row(row) = (w + (thickness * level / layers) * n).transpose();
         g.node_normals.row(row) = n.transpose();
@@ -268,6 +270,14 @@ TEST(Locator, RoundTrip3DWedges) {
     const BoundaryGrid g = ring_layer(6, 48, layers, 0.12);
     expect_valid_layer(g);
     expect_round_trip(g, 20000, 11 + static_cast<std::uint64_t>(layers));
+  }
+}
+
+TEST(Locator, RoundTrip3DWedgesOnAPlane) {
+  for (const int layers : {1, 3}) {
+    const BoundaryGrid g = ring_layer(6, 48, layers, 0.12, true);
+    expect_valid_layer(g);
+    expect_round_trip(g, 20000, 51 + static_cast<std::uint64_t>(layers));
   }
 }
 
