@@ -221,6 +221,43 @@ class PartTimer {
   double factorising_;
 };
 
+// The rows of columns `columns` of `r` not yet in `nodes`, appended once each (`mark`: 1 for
+// those in `nodes`).
+template <class Marks>
+void add_support(const Eigen::SparseMatrix<double>& r, const std::vector<int>& columns, Marks& mark,
+                 std::vector<int>& nodes) {
+  for (const int col : columns) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(r, col); it; ++it) {
+      const auto node = static_cast<std::size_t>(it.row());
+      if (mark[node] != 0) continue;
+      mark[node] = 1;
+      nodes.push_back(static_cast<int>(node));
+    }
+  }
+}
+
+// Per node of `nodes`, 1 if its mass is above `threshold` (and its mark cleared).
+template <class Marks, class Masses>
+void record_sides(const std::vector<int>& nodes, Marks& mark, const Masses& mass, double threshold,
+                  std::vector<std::uint8_t>& above) {
+  above.resize(nodes.size());
+  for (std::size_t i = 0; i < nodes.size(); ++i) {
+    const auto node = static_cast<std::size_t>(nodes[i]);
+    mark[node] = 0;
+    above[i] = mass[node] > threshold ? 1 : 0;
+  }
+}
+
+// True if every node of `nodes` is on the side of `threshold` that `above` recorded.
+template <class Masses>
+bool same_sides(const std::vector<int>& nodes, const std::vector<std::uint8_t>& above,
+                const Masses& mass, double threshold) {
+  for (std::size_t i = 0; i < nodes.size(); ++i) {
+    if ((mass[static_cast<std::size_t>(nodes[i])] > threshold) != (above[i] != 0)) return false;
+  }
+  return true;
+}
+
 // Records what the coupling in hand was assembled from (DualWall::support_recorded): the
 // carried multipliers and each node of their supports once, with whether it carries mass
 // above `threshold`.
@@ -229,47 +266,21 @@ void record_support(DualWall<D>& w, const Masses& grid_mass, double threshold) {
   w.recorded_carried = w.carried_multipliers;
   w.support_grid_nodes.clear();
   w.support_layer_nodes.clear();
-  for (const int mu : w.carried_multipliers) {
-    for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_coupling, mu); it; ++it) {
-      const auto node = static_cast<std::size_t>(it.row());
-      if (w.support_grid_mark[node] != 0) continue;
-      w.support_grid_mark[node] = 1;
-      w.support_grid_nodes.push_back(static_cast<int>(node));
-    }
-    for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_coupling, mu); it; ++it) {
-      const auto node = static_cast<std::size_t>(it.row());
-      if (w.support_layer_mark[node] != 0) continue;
-      w.support_layer_mark[node] = 1;
-      w.support_layer_nodes.push_back(static_cast<int>(node));
-    }
-  }
-  w.support_grid_above.resize(w.support_grid_nodes.size());
-  for (std::size_t i = 0; i < w.support_grid_nodes.size(); ++i) {
-    const auto node = static_cast<std::size_t>(w.support_grid_nodes[i]);
-    w.support_grid_mark[node] = 0;
-    w.support_grid_above[i] = grid_mass[node] > threshold ? 1 : 0;
-  }
-  w.support_layer_above.resize(w.support_layer_nodes.size());
-  for (std::size_t i = 0; i < w.support_layer_nodes.size(); ++i) {
-    const auto node = static_cast<std::size_t>(w.support_layer_nodes[i]);
-    w.support_layer_mark[node] = 0;
-    w.support_layer_above[i] = w.mass[node] > threshold ? 1 : 0;
-  }
+  add_support(w.grid_coupling, w.carried_multipliers, w.support_grid_mark, w.support_grid_nodes);
+  add_support(w.boundary_coupling, w.carried_multipliers, w.support_layer_mark,
+              w.support_layer_nodes);
+  record_sides(w.support_grid_nodes, w.support_grid_mark, grid_mass, threshold,
+               w.support_grid_above);
+  record_sides(w.support_layer_nodes, w.support_layer_mark, w.mass, threshold,
+               w.support_layer_above);
   w.support_recorded = true;
 }
 
 // True if every recorded support node is on the same side of `threshold` as when recorded.
 template <int D, class Masses>
 bool support_unchanged(const DualWall<D>& w, const Masses& grid_mass, double threshold) {
-  for (std::size_t i = 0; i < w.support_grid_nodes.size(); ++i) {
-    const bool above = grid_mass[static_cast<std::size_t>(w.support_grid_nodes[i])] > threshold;
-    if (above != (w.support_grid_above[i] != 0)) return false;
-  }
-  for (std::size_t i = 0; i < w.support_layer_nodes.size(); ++i) {
-    const bool above = w.mass[static_cast<std::size_t>(w.support_layer_nodes[i])] > threshold;
-    if (above != (w.support_layer_above[i] != 0)) return false;
-  }
-  return true;
+  return same_sides(w.support_grid_nodes, w.support_grid_above, grid_mass, threshold) &&
+         same_sides(w.support_layer_nodes, w.support_layer_above, w.mass, threshold);
 }
 
 }  // namespace
