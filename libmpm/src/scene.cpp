@@ -291,7 +291,7 @@ BodySpec read_body(Reader& r, int index, const Scene& scene,
     r.fail_at(r.child("material"), "no material named \"" + material + "\" in /materials");
   }
   body.material = it->second;
-  body.particles_per_cell = r.integer("particles_per_cell", 1, 8, 2);
+  body.particles_per_cell = r.integer("particles_per_cell", 1, 8, body.particles_per_cell);
   const Eigen::VectorXd zero = Eigen::VectorXd::Zero(dim);
   body.velocity = r.vector("velocity", dim, zero);
   body.body_force = r.vector("body_force", dim, zero);
@@ -429,7 +429,7 @@ WallCondition read_condition(Reader& r) {
 WallContact read_contact(Reader& r, bool touch) {
   WallContact contact;
   contact.condition = read_condition(r);
-  contact.separable = r.boolean("separable", false);
+  contact.separable = r.boolean("separable", contact.separable);
   if (r.has("touch_tolerance")) {
     if (!touch) {
       r.fail_at(r.child("touch_tolerance"),
@@ -716,12 +716,16 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
       scheme.fail_at(scheme.child("update"),
                      "\"mls\" needs \"transfer\": \"apic\" and \"shape_function\": \"bspline2\"");
     }
-    scene.mass_threshold = scheme.in_range("mass_threshold", 0.0, 0.5, false, 1e-9);
+    // The keys left out keep Scene's defaults (scene.hpp says what each means).
+    scene.mass_threshold = scheme.in_range("mass_threshold", 0.0, 0.5, false, scene.mass_threshold);
     scene.coupling_mass_threshold =
-        scheme.in_range("coupling_mass_threshold", 0.0, 0.5, false, 1e-2);
-    scene.coupling_tolerance = scheme.in_range("coupling_tolerance", 1e-13, 1e-3, false, 1e-6);
-    scene.dependence_tolerance = scheme.in_range("dependence_tolerance", 0.0, 1.0, false, 0.01);
-    scene.drop_covered_enhancement = scheme.boolean("drop_covered_enhancement", true);
+        scheme.in_range("coupling_mass_threshold", 0.0, 0.5, false, scene.coupling_mass_threshold);
+    scene.coupling_tolerance =
+        scheme.in_range("coupling_tolerance", 1e-13, 1e-3, false, scene.coupling_tolerance);
+    scene.dependence_tolerance =
+        scheme.in_range("dependence_tolerance", 0.0, 1.0, false, scene.dependence_tolerance);
+    scene.drop_covered_enhancement =
+        scheme.boolean("drop_covered_enhancement", scene.drop_covered_enhancement);
     scheme.finish();
   }
 
@@ -769,7 +773,7 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
   {
     Reader time = root.object("time");
     scene.end_time = time.positive("end");
-    scene.cfl = time.in_range("cfl", 1e-6, 1.0, false, 0.5);
+    scene.cfl = time.in_range("cfl", 1e-6, 1.0, false, scene.cfl);
     if (time.has("dt")) {
       scene.fixed_dt = time.positive("dt");
       // Explicit MPM is stable for dt <= h / c (CFL number 1) at best, and for viscous
@@ -790,7 +794,7 @@ Scene parse_scene(const json& doc, const std::filesystem::path& origin) {
   if (root.has("output")) {
     Reader output = root.object("output");
     scene.output_interval = output.positive("interval", scene.output_interval);
-    scene.history_interval = output.number("history_interval", 0.0);
+    scene.history_interval = output.number("history_interval", scene.history_interval);
     if (scene.history_interval < 0.0) {
       output.fail_at(output.child("history_interval"), "expected a number >= 0 (0: every step)");
     }

@@ -198,6 +198,37 @@ TEST_F(CommandLine, RejectsACouplingToleranceNoSolveCanMeetOrNoInterfaceCanTrust
   }
 }
 
+TEST(SceneDefaults, AKeyLeftOutTakesTheDefaultWhetherOrNotItsBlockIsThere) {
+  // The scene's settings, its bodies' and walls' as the reader leaves them: a block written out
+  // with none of its optional keys must read as the block left out.
+  const mpm::Scene defaults;
+  const mpm::BodySpec body_defaults;
+  const mpm::WallContact contact_defaults;
+  json bare = scene_2d();
+  bare.erase("scheme");
+  bare["time"].erase("cfl");
+  bare["bodies"][0].erase("particles_per_cell");
+  json empty_blocks = bare;
+  empty_blocks["scheme"] = json::object();
+  empty_blocks["output"] = json::object();
+  for (const json& doc : {bare, empty_blocks}) {
+    const mpm::Scene scene = mpm::parse_scene(doc, "defaults.json");
+    EXPECT_EQ(scene.update, defaults.update);
+    EXPECT_EQ(scene.transfer, defaults.transfer);
+    EXPECT_EQ(scene.mass_threshold, defaults.mass_threshold);
+    EXPECT_EQ(scene.coupling_mass_threshold, defaults.coupling_mass_threshold);
+    EXPECT_EQ(scene.coupling_tolerance, defaults.coupling_tolerance);
+    EXPECT_EQ(scene.dependence_tolerance, defaults.dependence_tolerance);
+    EXPECT_EQ(scene.drop_covered_enhancement, defaults.drop_covered_enhancement);
+    EXPECT_EQ(scene.cfl, defaults.cfl);
+    EXPECT_EQ(scene.history_interval, defaults.history_interval);
+    ASSERT_EQ(scene.bodies.size(), 1U);
+    EXPECT_EQ(scene.bodies[0].particles_per_cell, body_defaults.particles_per_cell);
+    ASSERT_EQ(scene.walls.size(), 3U);
+    EXPECT_EQ(scene.walls[1].contact.separable, contact_defaults.separable);
+  }
+}
+
 /// scene_2d with the block made of mu(I) sand (Jop et al.'s glass beads).
 json scene_2d_mu_i() {
   json scene = scene_2d();
