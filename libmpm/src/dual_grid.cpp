@@ -823,10 +823,12 @@ void Solver<D>::layer_scatter(bool with_force) {
             double mass = 0.0, momentum[D] = {}, second[D] = {};  // force, or the centroid's
             double gap = w.touch_gap[n];
             for_each_pair(node, [&](int place, int k, const auto& terms) {
-              mass += terms[0];
-              for (int a = 0; a < D; ++a) {
-                momentum[a] += terms[1 + a];
-                second[a] += terms[1 + D + a];
+              // The remap sums only what it stores: the momentum, and for Blending the
+              // centroid's terms (its pairs' mass terms are the force scatter's, left over).
+              if (with_force) mass += terms[0];
+              for (int a = 0; a < D; ++a) momentum[a] += terms[1 + a];
+              if (with_force || centroids) {
+                for (int a = 0; a < D; ++a) second[a] += terms[1 + D + a];
               }
               if (plain) {
                 const std::size_t at = static_cast<std::size_t>(k) * w.cell_members.size() +
