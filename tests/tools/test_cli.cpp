@@ -199,8 +199,9 @@ TEST_F(CommandLine, RejectsACouplingToleranceNoSolveCanMeetOrNoInterfaceCanTrust
 }
 
 TEST(SceneDefaults, AKeyLeftOutTakesTheDefaultWhetherOrNotItsBlockIsThere) {
-  // The scene's settings, its bodies' and walls' as the reader leaves them: a block written out
-  // with none of its optional keys must read as the block left out.
+  // Read through the library (no output reports these settings): a block written out without
+  // its optional keys reads as the block left out, both giving the defaults scene.hpp and
+  // walls.hpp declare.
   const mpm::Scene defaults;
   const mpm::BodySpec body_defaults;
   const mpm::WallContact contact_defaults;
