@@ -209,6 +209,7 @@ TEST(SceneDefaults, AKeyLeftOutTakesTheDefaultWhetherOrNotItsBlockIsThere) {
   bare.erase("scheme");
   bare["time"].erase("cfl");
   bare["bodies"][0].erase("particles_per_cell");
+  bare.erase("output");
   json empty_blocks = bare;
   empty_blocks["scheme"] = json::object();
   empty_blocks["output"] = json::object();
