@@ -26,6 +26,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
 #include <limits>
 #include <mutex>
 #include <numbers>
@@ -257,6 +258,11 @@ struct LayerLocator::Impl {
   std::vector<double> coordinate_scale;                    // largest |x| over the cell's nodes
   /// Each cell's map in closed form (boundary_grid.hpp), which Newton evaluates.
   std::vector<CellMap> maps;
+  /// Per cell, 1 where its map is affine (a flat stretch of wall offset by the same vector at
+  /// each of its nodes: the cross terms f_j below round-off), and then dx/dxi's inverse (row-major,
+  /// unused axes identity): such a cell's point is solved for directly instead of by Newton.
+  std::vector<std::uint8_t> affine;
+  std::vector<std::array<double, 9>> inverse;
   EmbreeScene embree;
 
   struct Query {
@@ -268,7 +274,10 @@ struct LayerLocator::Impl {
   };
 
   explicit Impl(const BoundaryGrid& boundary);
+  void set_affine(std::size_t c);
   void try_cell(int c, Query& q) const;
+  /// Takes xi (and the map's Jacobian J) as the answer in cell c if it lies in the cell.
+  void consider(int c, const double (&xi)[3], const double (&J)[3][3], Query& q) const;
   [[nodiscard]] Location locate(const Eigen::Vector3d& point, int hint) const;
 
   static bool on_candidate(RTCPointQueryFunctionArguments* args) {
@@ -315,6 +324,8 @@ LayerLocator::Impl::Impl(const BoundaryGrid& boundary) {
   cell_size.resize(cells);
   coordinate_scale.resize(cells);
   maps.resize(cells);
+  affine.assign(cells, 0);
+  inverse.resize(cells);
   for (std::size_t c = 0; c < cells; ++c) {
     // The basis is a convex combination on the reference cell, so the node box holds the cell.
     Eigen::Vector3d lo = Eigen::Vector3d::Zero(), hi = Eigen::Vector3d::Zero();  // unused: 0
@@ -335,6 +346,7 @@ LayerLocator::Impl::Impl(const BoundaryGrid& boundary) {
     const double size = (hi - lo).norm();
     cell_size[c] = size;
     coordinate_scale[c] = scale;
+    set_affine(c);
     // Pad: relative to the cell (points within kXiTolerance outside still count), plus a few
     // float steps of the coordinates so that the rounding of the query point cannot miss.
     const double frame_extent = std::max(lo.cwiseAbs().maxCoeff(), hi.cwiseAbs().maxCoeff());
@@ -367,9 +379,70 @@ LayerLocator::Impl::Impl(const BoundaryGrid& boundary) {
   embree.check("building the layer-cell BVH");
 }
 
+void LayerLocator::Impl::set_affine(std::size_t c) {
+  const CellMap& map = maps[c];
+  // Inside the cell the map's residual from its affine part is at most sum_j |f_j| (xi and z
+  // lie in [0, 1]): with each component of each f_j below this, the direct answer's residual is
+  // below Newton's convergence tolerance (1e-13 of the cell, try_cell()), and Newton from the
+  // centroid would stop after one step anyway.
+  const double negligible = 1e-14 * cell_size[c];
+  for (std::size_t k = 12; k < 18; ++k) {
+    if (!(std::abs(map.v[k]) <= negligible)) return;
+  }
+  const int m = dimension - 1;
+  Eigen::Matrix3d J = Eigen::Matrix3d::Identity();
+  for (int i = 0; i < dimension; ++i) {
+    for (int j = 0; j < m; ++j) J(i, j) = map.v[static_cast<std::size_t>(3 + 3 * j + i)];
+    J(i, m) = map.v[static_cast<std::size_t>(9 + i)];
+  }
+  const double det = J.determinant();
+  if (!(std::abs(det) > 0.0) || !std::isfinite(det)) return;  // Newton says why it fails
+  const Eigen::Matrix3d inv = J.inverse();
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) inverse[c][static_cast<std::size_t>(3 * i + j)] = inv(i, j);
+  }
+  affine[c] = 1;
+}
+
+void LayerLocator::Impl::consider(int c, const double (&xi)[3], const double (&J)[3][3],
+                                  Query& q) const {
+  const Eigen::Vector3d solution(xi[0], xi[1], xi[2]);  // unused entries stay 0
+  const double margin = reference_margin(dimension, solution);
+  if (margin < -kXiTolerance) return;
+  // Best margin wins, ties to the lower index: independent of the order Embree reports cells.
+  if (margin > q.best_margin || (margin == q.best_margin && c < q.best.cell)) {
+    q.best_margin = margin;
+    q.best.cell = c;
+    q.best.xi = solution;
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) q.best.jacobian(i, j) = J[i][j];  // at xi: unused entries 0
+    }
+  }
+  if (margin > kClearlyInside) q.settled = true;
+}
+
 void LayerLocator::Impl::try_cell(int c, Query& q) const {
   const int dim = dimension;
   const auto cell = static_cast<std::size_t>(c);
+  if (affine[cell] != 0) {
+    // xi = J^-1 (p - x(0)); J is the map's at every xi (unused axes: identity in the inverse,
+    // 0 in the Jacobian handed on, whose rows and columns beyond `dimension` stay 0).
+    const CellMap& map = maps[cell];
+    const std::array<double, 9>& inv = inverse[cell];
+    const double r[3] = {q.point[0] - map.v[0], q.point[1] - map.v[1], q.point[2] - map.v[2]};
+    double xi[3] = {};
+    for (int i = 0; i < dim; ++i) {
+      xi[i] = inv[3 * i] * r[0] + inv[3 * i + 1] * r[1] + inv[3 * i + 2] * r[2];
+    }
+    double J[3][3] = {};
+    const int m = dim - 1;
+    for (int i = 0; i < dim; ++i) {
+      for (int j = 0; j < m; ++j) J[i][j] = map.v[static_cast<std::size_t>(3 + 3 * j + i)];
+      J[i][m] = map.v[static_cast<std::size_t>(9 + i)];
+    }
+    consider(c, xi, J, q);
+    return;
+  }
   // |x(xi) - p| below this is converged: 1e-13 of the cell, or round-off of the coordinates.
   const double tolerance =
       1e-13 * cell_size[cell] +
@@ -411,19 +484,7 @@ void LayerLocator::Impl::try_cell(int c, Query& q) const {
     if (!(std::max({std::abs(xi[0]), std::abs(xi[1]), std::abs(xi[2])}) < 4.0)) return;
   }
   if (!converged) return;
-  const Eigen::Vector3d solution(xi[0], xi[1], xi[2]);  // unused entries stay 0
-  const double margin = reference_margin(dim, solution);
-  if (margin < -kXiTolerance) return;
-  // Best margin wins, ties to the lower index: independent of the order Embree reports cells.
-  if (margin > q.best_margin || (margin == q.best_margin && c < q.best.cell)) {
-    q.best_margin = margin;
-    q.best.cell = c;
-    q.best.xi = solution;
-    for (int i = 0; i < 3; ++i) {
-      for (int j = 0; j < 3; ++j) q.best.jacobian(i, j) = J[i][j];  // at xi: unused entries 0
-    }
-  }
-  if (margin > kClearlyInside) q.settled = true;
+  consider(c, xi, J, q);
 }
 
 LayerLocator::Location LayerLocator::Impl::locate(const Eigen::Vector3d& point, int hint) const {

@@ -13,6 +13,7 @@
 #include <array>
 #include <atomic>
 #include <cmath>
+#include <limits>
 #include <numeric>
 #include <type_traits>
 #include <unordered_map>
@@ -622,6 +623,9 @@ void Solver<D>::locate_in_layers() {
   const bool remaps = scene_.update == UpdateScheme::musl;
   tbb::parallel_for(std::size_t{0}, layer_hits_.size(), [&](std::size_t chunk) {
     const std::vector<LayerHit>& hits = layer_hits_[chunk];
+    // A body's particles mostly share their initial volume: its root is taken once for each run
+    // of equal volumes (the same value, bit for bit, as taken for each particle).
+    double volume0 = std::numeric_limits<double>::quiet_NaN(), half = 0.0;
     for (std::size_t j = 0; j < hits.size(); ++j) {
       const std::size_t i = layer_chunk_first_[chunk] + j;
       const auto p = static_cast<std::size_t>(hits[j].particle);
@@ -640,7 +644,10 @@ void Solver<D>::locate_in_layers() {
       // particle's near edge (half its initial size as a cube, widened by the touch
       // tolerance) reaches it.
       if (w.spec->contact.separable) {
-        const double half = 0.5 * std::pow(P.volume0[p], 1.0 / D);
+        if (!(P.volume0[p] == volume0)) {
+          volume0 = P.volume0[p];
+          half = 0.5 * std::pow(volume0, 1.0 / D);
+        }
         t.reach = (1.0 + w.spec->contact.touch_tolerance) * half;
         const double window = w.touch_window[static_cast<std::size_t>(layer_cell_[i])] + half;
         t.window_squared = window * window;
