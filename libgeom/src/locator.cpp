@@ -520,6 +520,17 @@ LayerLocator::Location LayerLocator::locate(const Eigen::Vector3d& point, int hi
   return impl_->locate(point, hint);
 }
 
+void LayerLocator::prefetch(int cell) const noexcept {
+  const auto c = static_cast<std::size_t>(cell);
+  if (cell < 0 || c >= impl_->maps.size()) return;
+  const auto* map = reinterpret_cast<const char*>(&impl_->maps[c]);
+  __builtin_prefetch(map);
+  __builtin_prefetch(map + 64);
+  __builtin_prefetch(map + 128);
+  __builtin_prefetch(impl_->inverse[c].data());
+  __builtin_prefetch(&impl_->affine[c]);
+}
+
 void LayerLocator::locate(const Eigen::MatrixXd& points, std::vector<Location>& out,
                           const std::vector<std::uint8_t>* skip) const {
   const int dim = impl_->dimension;

@@ -569,6 +569,14 @@ void Solver<D>::locate_in_layers() {
     hits.clear();
     const std::size_t end = std::min(P.size(), (chunk + 1) * kChunk);
     for (std::size_t p = chunk * kChunk; p != end; ++p) {
+      // The hinted cell of the particle 32 places on asked for now (the cells' maps are read
+      // in no order memory can guess: 0.1-0.3 ms of the floor's 1.9-3.0 ms on one thread).
+      if (const std::size_t ahead = p + 32; ahead < end) {
+        if (const int wall = P.layer_wall[ahead]; wall >= 0) {
+          dual_[static_cast<std::size_t>(wall)].locator->prefetch(
+              layer_cell_[static_cast<std::size_t>(P.layer_slot[ahead])]);
+        }
+      }
       // The layer cell of the step before (the list is rebuilt below, after this pass), tried
       // first: particles move a fraction of a cell per step.
       const int previous_wall = P.layer_wall[p];

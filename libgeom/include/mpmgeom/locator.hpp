@@ -42,6 +42,9 @@ class LayerLocator {
   /// (a particle's cell of the step before); a point clearly inside it is in no other cell, so
   /// the answer is the same as without it, found without the Embree query.
   [[nodiscard]] Location locate(const Eigen::Vector3d& point, int hint = -1) const;
+  /// Asks the memory system for what locate() reads of `cell` as a hint (a caller that knows
+  /// its next queries' hints issues this a few queries ahead; no effect on any answer).
+  void prefetch(int cell) const noexcept;
   /// points: #P x dimension. Parallel (TBB). `skip` (optional, #P): 1 = do not query (the point
   /// is known to be outside the layer, e.g. from layer_cell_flags), result cell -1.
   void locate(const Eigen::MatrixXd& points, std::vector<Location>& out,
