@@ -635,6 +635,17 @@ void Solver<D>::locate_in_layers() {
     // of equal volumes (the same value, bit for bit, as taken for each particle).
     double volume0 = std::numeric_limits<double>::quiet_NaN(), half = 0.0;
     for (std::size_t j = 0; j < hits.size(); ++j) {
+      if (j + 8 < hits.size()) {
+        // What this pass reads of the particle 8 hits on (a layer particle's arrays are read
+        // in strides the hardware prefetcher does not follow).
+        const auto q = static_cast<std::size_t>(hits[j + 8].particle);
+        for (const auto* matrix : {P.deformation_gradient[q].data(), P.stress[q].data()}) {
+          __builtin_prefetch(matrix);
+          __builtin_prefetch(matrix + D * D - 1);
+        }
+        __builtin_prefetch(&P.volume0[q]);
+        __builtin_prefetch(&P.mass[q]);
+      }
       const std::size_t i = layer_chunk_first_[chunk] + j;
       const auto p = static_cast<std::size_t>(hits[j].particle);
       P.layer_slot[p] = static_cast<int>(i);
