@@ -433,6 +433,29 @@ TEST(Locator, SkipFlagsAreHonoured) {
   EXPECT_THROW(locator.locate(Eigen::MatrixXd::Zero(4, 2), out), std::invalid_argument);
 }
 
+// prefetch() is a hint to the memory system: any cell number, in range or not, leaves every
+// answer as it was (the solver issues it for the hinted cells of the particles ahead).
+TEST(Locator, PrefetchChangesNoAnswerAndIgnoresCellsOutOfRange) {
+  const BoundaryGrid g = ring_layer(4, 32, 2, 0.1, true);
+  const LayerLocator locator(g);
+  std::mt19937_64 rng(17);
+  std::uniform_int_distribution<std::size_t> pick(0, g.cell_count() - 1);
+  const auto cells = static_cast<int>(g.cell_count());
+  for (int n = 0; n < 500; ++n) {
+    const auto c = static_cast<int>(pick(rng));
+    const Eigen::Vector3d p =
+        mpmgeom::cell_point(g, static_cast<std::size_t>(c), random_xi(3, rng));
+    const LayerLocator::Location before = locator.locate(p, c);
+    for (const int cell : {c, -1, cells, cells + 1000, std::numeric_limits<int>::min()}) {
+      locator.prefetch(cell);
+    }
+    const LayerLocator::Location after = locator.locate(p, c);
+    EXPECT_EQ(after.cell, before.cell);
+    EXPECT_EQ(after.xi, before.xi);
+    EXPECT_EQ(after.jacobian, before.jacobian);
+  }
+}
+
 TEST(Locator, RejectsInconsistentGrids) {
   BoundaryGrid g = segment_layer(2, 0.2);
   g.cells(1, 1) = 7;
