@@ -389,11 +389,13 @@ void LayerLocator::Impl::set_affine(std::size_t c) {
   for (std::size_t k = 12; k < 18; ++k) {
     if (!(std::abs(map.v[k]) <= negligible)) return;
   }
-  const int m = dimension - 1;
+  // dx/dxi at the cell's origin (the affine part's, the same at every xi), unused axes identity.
+  const double origin[3] = {}, zero[3] = {};
+  double r[3], dx[3][3];
+  map.evaluate(origin, zero, r, dx);
   Eigen::Matrix3d J = Eigen::Matrix3d::Identity();
   for (int i = 0; i < dimension; ++i) {
-    for (int j = 0; j < m; ++j) J(i, j) = map.v[static_cast<std::size_t>(3 + 3 * j + i)];
-    J(i, m) = map.v[static_cast<std::size_t>(9 + i)];
+    for (int j = 0; j < dimension; ++j) J(i, j) = dx[i][j];
   }
   const double det = J.determinant();
   if (!(std::abs(det) > 0.0) || !std::isfinite(det)) return;  // Newton says why it fails
@@ -425,21 +427,18 @@ void LayerLocator::Impl::try_cell(int c, Query& q) const {
   const int dim = dimension;
   const auto cell = static_cast<std::size_t>(c);
   if (affine[cell] != 0) {
-    // xi = J^-1 (p - x(0)); J is the map's at every xi (unused axes: identity in the inverse,
-    // 0 in the Jacobian handed on, whose rows and columns beyond `dimension` stay 0).
+    // xi = J^-1 (p - x(0)) (unused axes: identity in the inverse); the Jacobian handed on is
+    // the map's at xi, as Newton's is (rows and columns beyond `dimension` 0).
     const CellMap& map = maps[cell];
     const std::array<double, 9>& inv = inverse[cell];
-    const double r[3] = {q.point[0] - map.v[0], q.point[1] - map.v[1], q.point[2] - map.v[2]};
+    const double d[3] = {q.point[0] - map.v[0], q.point[1] - map.v[1], q.point[2] - map.v[2]};
     double xi[3] = {};
     for (int i = 0; i < dim; ++i) {
-      xi[i] = inv[3 * i] * r[0] + inv[3 * i + 1] * r[1] + inv[3 * i + 2] * r[2];
+      xi[i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
     }
-    double J[3][3] = {};
-    const int m = dim - 1;
-    for (int i = 0; i < dim; ++i) {
-      for (int j = 0; j < m; ++j) J[i][j] = map.v[static_cast<std::size_t>(3 + 3 * j + i)];
-      J[i][m] = map.v[static_cast<std::size_t>(9 + i)];
-    }
+    const double point[3] = {q.point[0], q.point[1], q.point[2]};
+    double r[3], J[3][3];
+    map.evaluate(xi, point, r, J);
     consider(c, xi, J, q);
     return;
   }
@@ -524,9 +523,7 @@ void LayerLocator::prefetch(int cell) const noexcept {
   const auto c = static_cast<std::size_t>(cell);
   if (cell < 0 || c >= impl_->maps.size()) return;
   const auto* map = reinterpret_cast<const char*>(&impl_->maps[c]);
-  __builtin_prefetch(map);
-  __builtin_prefetch(map + 64);
-  __builtin_prefetch(map + 128);
+  for (std::size_t line = 0; line < sizeof(CellMap); line += 64) __builtin_prefetch(map + line);
   __builtin_prefetch(impl_->inverse[c].data());
   __builtin_prefetch(&impl_->affine[c]);
 }
