@@ -1018,10 +1018,16 @@ void Solver<D>::sample_and_update_stress(double dt, Sample&& sample) {
 // A coupling changes few standard-grid nodes (Blending: rows of its R^A; Enhanced: rows of its
 // R^A on Gamma and its layer particles' stencil nodes) besides its boundary grid, so the
 // particles whose stencils reach none of them and that no layer holds gather the same values
-// before it as after (bit for bit): one core gathers them while the other couples (its assembly
-// and products are serial and would leave a core idle), and the rest are gathered after. The phase
-// timers charge the coupling its own duration, taken from what the pass was charged over the same
-// time, so the phases still add up to the step.
+// before it as after (bit for bit): one core can gather them while the other couples (its
+// assembly and products are serial and would leave a core idle), and the rest after. Whether
+// that pays depends on the coupling's length and on the machine: on the shared two-core host of
+// docs/performance.md the two passes cost half as much again per particle on two threads as one
+// pass over all (not on one thread), so a short coupling (the mortar floor's, refined against
+// an aged factor: 2.4 ms) is better followed by one pass, and a long one (Enhanced's, 11-14 ms)
+// better overlapped. So each call measures its time from the coupling's start to the gather's
+// end and runs the way that has lately been faster (couple_beside_next()). The phase timers
+// charge an overlapped coupling its own duration, taken from what the pass was charged over the
+// same time, so the phases still add up to the step.
 template <int D>
 template <class Pass>
 void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
@@ -1033,26 +1039,54 @@ void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
     return;
   }
   using Clock = std::chrono::steady_clock;
-  const double gather_before = times_.grid_to_particles, stress_before = times_.stress;
-  // The free pass is the task and this thread couples: a thread waiting inside the pass's
-  // parallel loops could otherwise pick up the coupling and hold the pass's next loop back.
-  tbb::task_group beside;
-  beside.run([&] { pass(Reach::free); });
+  const int call = remapped ? 1 : 0;
+  const bool beside = couple_beside_next(call);
   const auto start = Clock::now();
-  layer_couple(remapped);
-  const double coupling = std::chrono::duration<double>(Clock::now() - start).count();
-  beside.wait();
-  lap(&PhaseTimes::grid_to_particles);
-  const double gathered = times_.grid_to_particles - gather_before;
-  const double stressed = times_.stress - stress_before;
-  const double charged = gathered + stressed;
-  if (charged > 0.0) {
-    const double moved = std::min(coupling, charged);
-    times_.grid_to_particles -= moved * gathered / charged;
-    times_.stress -= moved * stressed / charged;
-    times_.coupling += moved;
+  if (!beside) {
+    layer_couple(remapped);
+    lap(&PhaseTimes::coupling);
+    pass(Reach::all);
+  } else {
+    const double gather_before = times_.grid_to_particles, stress_before = times_.stress;
+    // The free pass is the task and this thread couples: a thread waiting inside the pass's
+    // parallel loops could otherwise pick up the coupling and hold the pass's next loop back.
+    tbb::task_group gathering;
+    gathering.run([&] { pass(Reach::free); });
+    layer_couple(remapped);
+    const double coupling = std::chrono::duration<double>(Clock::now() - start).count();
+    gathering.wait();
+    lap(&PhaseTimes::grid_to_particles);
+    const double gathered = times_.grid_to_particles - gather_before;
+    const double stressed = times_.stress - stress_before;
+    const double charged = gathered + stressed;
+    if (charged > 0.0) {
+      const double moved = std::min(coupling, charged);
+      times_.grid_to_particles -= moved * gathered / charged;
+      times_.stress -= moved * stressed / charged;
+      times_.coupling += moved;
+    }
+    pass(Reach::near);
   }
-  pass(Reach::near);
+  OverlapTimes& t = overlap_[static_cast<std::size_t>(call)];
+  const auto way = static_cast<std::size_t>(beside ? 1 : 0);
+  const double seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  // The mean of about the last four runs: the host's speed drifts, and the coupling's length
+  // with the flow.
+  t.mean[way] = t.runs[way] == 0 ? seconds : t.mean[way] + 0.25 * (seconds - t.mean[way]);
+  ++t.runs[way];
+}
+
+// Whether call `call` of couple_beside() (0: the gather's, 1: the MUSL remap's) overlaps this
+// time: each way twice first, alternately, then the one with the smaller recent mean, and the
+// other every 16th call (a way that lost once is measured again as things change).
+template <int D>
+bool Solver<D>::couple_beside_next(int call) {
+  if (overlap_mode_ != CouplingOverlap::adaptive) return overlap_mode_ == CouplingOverlap::beside;
+  OverlapTimes& t = overlap_[static_cast<std::size_t>(call)];
+  ++t.calls;
+  if (t.runs[0] < 2 || t.runs[1] < 2) return t.runs[1] <= t.runs[0];
+  const bool faster = t.mean[1] <= t.mean[0];
+  return t.calls % 16 == 0 ? !faster : faster;
 }
 
 template <int D>

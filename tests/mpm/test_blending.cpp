@@ -1582,5 +1582,73 @@ INSTANTIATE_TEST_SUITE_P(MethodAndShape, CouplingOverlap,
                                             ::testing::Values("bspline2", "gimp", "linear")),
                          method_and_shape_name);
 
+// The coupling beside the free particles' gather or before one gather of all (the step picks the
+// way that has lately been faster, Solver::couple_beside()): the same particles bit for bit, and
+// the adaptive choice runs both. The incline's block and a copy falling freely above it (free
+// particles), under MUSL (two couplings a step) and MLS-MPM.
+class CouplingOverlapWays : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {
+};
+
+template <int D>
+void expect_overlap_ways_agree(InclineScene in, double lift, const char* update) {
+  json upper = in.doc["bodies"][0];
+  upper["name"] = "upper";
+  for (const char* key : {"min", "max"}) {
+    for (int d = 0; d < D; ++d)
+      upper["shape"][key][d] = upper["shape"][key][d].get<double>() + lift * in.normal[d];
+  }
+  in.doc["bodies"].push_back(upper);
+  in.doc["scheme"]["update"] = update;
+  const Scene scene = parse_scene(in.doc, "<coupling overlap ways>");
+  using Way = typename Solver<D>::CouplingOverlap;
+  std::vector<std::unique_ptr<Solver<D>>> runs;
+  for (const Way way : {Way::after, Way::beside, Way::adaptive}) {
+    runs.push_back(std::make_unique<Solver<D>>(scene));
+    runs.back()->set_coupling_overlap(way);
+  }
+  const double dt = runs[0]->stable_dt(0.5);
+  for (int step = 0; step < 6; ++step) {
+    for (auto& s : runs) s->step(dt);
+  }
+  for (auto& s : runs) ASSERT_FALSE(s->fault().has_value()) << *s->fault();
+  const std::size_t layer = runs[0]->dual_walls()[0].layer_particles;
+  EXPECT_GT(layer, 0U) << "no particle in the layer: nothing coupled";
+  const Particles<D>& a = runs[0]->particles;
+  for (std::size_t r = 1; r < runs.size(); ++r) {
+    const Particles<D>& b = runs[r]->particles;
+    for (std::size_t p = 0; p < a.size(); ++p) {
+      ASSERT_EQ(a.position[p], b.position[p]) << "run " << r << ", particle " << p;
+      ASSERT_EQ(a.velocity[p], b.velocity[p]) << "run " << r << ", particle " << p;
+      ASSERT_EQ(a.affine[p], b.affine[p]) << "run " << r << ", particle " << p;
+      ASSERT_EQ(a.deformation_gradient[p], b.deformation_gradient[p])
+          << "run " << r << ", particle " << p;
+      ASSERT_EQ(a.stress[p], b.stress[p]) << "run " << r << ", particle " << p;
+    }
+  }
+  const auto forced_after = runs[0]->coupling_overlap_counts();
+  const auto forced_beside = runs[1]->coupling_overlap_counts();
+  const auto adaptive = runs[2]->coupling_overlap_counts();
+  EXPECT_EQ(forced_after[1], 0U);
+  EXPECT_EQ(forced_beside[0], 0U);
+  EXPECT_GE(adaptive[0], 2U);  // each way measured at least twice
+  EXPECT_GE(adaptive[1], 2U);
+}
+
+TEST_P(CouplingOverlapWays, SameParticlesBitForBit2D) {
+  const auto& [method, update] = GetParam();
+  expect_overlap_ways_agree<2>(incline_2d(20.0, 0.5, kInclineH, 0.5, method), 0.25, update);
+}
+
+TEST_P(CouplingOverlapWays, SameParticlesBitForBit3D) {
+  const auto& [method, update] = GetParam();
+  TempDir dir;
+  expect_overlap_ways_agree<3>(incline_3d(20.0, 0.5, dir.path(), method), 0.2, update);
+}
+
+INSTANTIATE_TEST_SUITE_P(MethodAndUpdate, CouplingOverlapWays,
+                         ::testing::Combine(::testing::Values("mortar", "enhanced"),
+                                            ::testing::Values("musl", "mls")),
+                         method_and_shape_name);
+
 }  // namespace
 }  // namespace mpm

@@ -12,6 +12,7 @@
 //
 // make_simulation() hides the dimension behind the Simulation interface for the run loop.
 
+#include <array>
 #include <chrono>
 #include <cstdint>
 #include <memory>
@@ -173,8 +174,8 @@ class Solver final : public Simulation {
   void particles_to_grid(double dt);
   void update_grid(double dt);
   void apply_walls();
-  /// Couples the dual-grid walls first (layer_couple(), beside the gather of the particles whose
-  /// stencils reach no node a coupling changes), then gathers.
+  /// Couples the dual-grid walls (layer_couple(): before the gather, or beside the gather of the
+  /// particles whose stencils reach no node a coupling changes), then gathers the rest.
   void grid_to_particles(double dt);
 
   /// The dual-grid walls (Blending and Enhanced), in scene order.
@@ -184,6 +185,17 @@ class Solver final : public Simulation {
   /// Per particle, this step: 1 where its stencil may reach a node a coupling changes (its
   /// cell's, locate_in_layers()); empty without dual-grid walls. Public for tests.
   [[nodiscard]] const std::vector<std::uint8_t>& near_coupling() const { return near_coupling_; }
+
+  /// How a dual-grid step's coupling meets the gather of the particles it cannot change
+  /// (couple_beside()): beside it, on the other core, or after it, all particles in one pass
+  /// then; by default whichever of the two has lately taken less time (the answers are the same
+  /// bit for bit either way).
+  enum class CouplingOverlap { adaptive, beside, after };
+  void set_coupling_overlap(CouplingOverlap mode) { overlap_mode_ = mode; }
+  /// How many times each way ran: [0] after the coupling, [1] beside it.
+  [[nodiscard]] std::array<std::size_t, 2> coupling_overlap_counts() const {
+    return {overlap_[0].runs[0] + overlap_[1].runs[0], overlap_[0].runs[1] + overlap_[1].runs[1]};
+  }
 
   /// Index range [begin, end) of the particles of each material.
   [[nodiscard]] const std::vector<std::pair<std::size_t, std::size_t>>& material_groups() const {
@@ -328,6 +340,17 @@ class Solver final : public Simulation {
   std::vector<std::uint8_t> coupled_cell_;
   /// Per particle, this step (locate_in_layers()): coupled_cell_ of its cell.
   std::vector<std::uint8_t> near_coupling_;
+  /// couple_beside()'s choice, per call (the gather's, the MUSL remap's): each way's recent
+  /// time from the coupling's start to the gather's end ([0] after, [1] beside), how many times
+  /// each was measured, and the calls so far (couple_beside_next()).
+  struct OverlapTimes {
+    std::array<double, 2> mean{};
+    std::array<std::size_t, 2> runs{};
+    std::size_t calls = 0;
+  };
+  std::array<OverlapTimes, 2> overlap_;
+  CouplingOverlap overlap_mode_ = CouplingOverlap::adaptive;
+  bool couple_beside_next(int call);
   /// Signed-distance walls (the baseline): standard-grid nodes on or behind the surface, within
   /// reach of the kernel, with the unit normal into the material at each.
   struct SdfWall {
