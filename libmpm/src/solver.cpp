@@ -1019,15 +1019,15 @@ void Solver<D>::sample_and_update_stress(double dt, Sample&& sample) {
 // R^A on Gamma and its layer particles' stencil nodes) besides its boundary grid, so the
 // particles whose stencils reach none of them and that no layer holds gather the same values
 // before it as after (bit for bit): one core can gather them while the other couples (its
-// assembly and products are serial and would leave a core idle), and the rest after. Whether
-// that pays depends on the coupling's length and on the machine: on the shared two-core host of
-// docs/performance.md the two passes cost half as much again per particle on two threads as one
-// pass over all (not on one thread), so a short coupling (the mortar floor's, refined against
-// an aged factor: 2.4 ms) is better followed by one pass, and a long one (Enhanced's, 11-14 ms)
-// better overlapped. So each call measures its time from the coupling's start to the gather's
-// end and runs the way that has lately been faster (couple_beside_next()). The phase timers
-// charge an overlapped coupling its own duration, taken from what the pass was charged over the
-// same time, so the phases still add up to the step.
+// solves are mostly serial and would leave a core idle), and the rest after. Whether that pays
+// depends on the coupling and on the machine: a coupling with parallel parts of its own
+// (Enhanced's assembly) runs longer beside the gather than alone on both cores, and on the
+// shared two-core host of docs/performance.md the mortar floor's (refined against an aged
+// factor, 2.4 ms) gains by the overlap under MLS-MPM and not under MUSL, Enhanced's loses. So
+// each call measures its time from the coupling's start to the gather's end and runs the way
+// that has lately been faster (couple_beside_next()). The phase timers charge an overlapped
+// coupling its own duration, taken from what the pass was charged over the same time, so the
+// phases still add up to the step.
 template <int D>
 template <class Pass>
 void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
@@ -1048,13 +1048,21 @@ void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
     pass(Reach::all);
   } else {
     const double gather_before = times_.grid_to_particles, stress_before = times_.stress;
-    // The free pass is the task and this thread couples: a thread waiting inside the pass's
-    // parallel loops could otherwise pick up the coupling and hold the pass's next loop back.
-    tbb::task_group gathering;
-    gathering.run([&] { pass(Reach::free); });
-    layer_couple(remapped);
-    const double coupling = std::chrono::duration<double>(Clock::now() - start).count();
-    gathering.wait();
+    // The coupling is the task (the other thread takes it) and this thread gathers the free
+    // particles, which the other joins when it has coupled. (The other way round, the free pass
+    // the task and the coupling this thread's, both gathers ran half as slow again per particle
+    // on the two-core host: the mortar floor under MLS-MPM 1.67-1.69 times the standard step
+    // against 1.39, docs/performance.md.) The coupling touches no phase timer: its own duration
+    // is taken inside the task.
+    double coupling = 0.0;
+    tbb::task_group coupler;
+    coupler.run([&] {
+      const auto begin = Clock::now();
+      layer_couple(remapped);
+      coupling = std::chrono::duration<double>(Clock::now() - begin).count();
+    });
+    pass(Reach::free);
+    coupler.wait();
     lap(&PhaseTimes::grid_to_particles);
     const double gathered = times_.grid_to_particles - gather_before;
     const double stressed = times_.stress - stress_before;
