@@ -1051,7 +1051,7 @@ void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
     // The coupling is the task (the other thread takes it) and this thread gathers the free
     // particles, which the other joins when it has coupled. (The other way round, the free pass
     // the task and the coupling this thread's, both gathers ran half as slow again per particle
-    // on the two-core host: the mortar floor under MLS-MPM 1.67-1.69 times the standard step
+    // on the two-core host: the mortar floor under MLS-MPM 1.60-1.69 times the standard step
     // against 1.39, docs/performance.md.) The coupling touches no phase timer: its own duration
     // is taken inside the task.
     double coupling = 0.0;
