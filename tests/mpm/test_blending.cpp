@@ -1507,10 +1507,10 @@ INSTANTIATE_TEST_SUITE_P(Methods, LayerStepCheck, ::testing::Values("mortar", "e
 // cells at every offset; each method and kernel, 2D and 3D.
 class CouplingOverlap : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {};
 
-// The incline's block (3 cells thick: every particle reaches the coupled nodes) and a copy of
-// it `lift` along the normal, falling freely above it, whose particles do not.
+// Adds a copy of the incline's block `lift` along the normal, named "upper" (falling freely
+// above the block: its particles reach no coupled node).
 template <int D>
-void expect_free_particles_untouched(InclineScene in, double lift) {
+void add_lifted_block(InclineScene& in, double lift) {
   json upper = in.doc["bodies"][0];
   upper["name"] = "upper";
   for (const char* key : {"min", "max"}) {
@@ -1518,6 +1518,13 @@ void expect_free_particles_untouched(InclineScene in, double lift) {
       upper["shape"][key][d] = upper["shape"][key][d].get<double>() + lift * in.normal[d];
   }
   in.doc["bodies"].push_back(upper);
+}
+
+// The incline's block (3 cells thick: every particle reaches the coupled nodes) and a copy of
+// it `lift` along the normal, falling freely above it, whose particles do not.
+template <int D>
+void expect_free_particles_untouched(InclineScene in, double lift) {
+  add_lifted_block<D>(in, lift);
   const Scene scene = parse_scene(in.doc, "<coupling overlap>");
   Solver<D> s(scene);
   const double dt = s.stable_dt(0.5);
@@ -1593,13 +1600,7 @@ class CouplingOverlapWays : public ::testing::TestWithParam<std::tuple<const cha
 
 template <int D>
 void expect_overlap_ways_agree(InclineScene in, double lift, const char* update, int threads = 0) {
-  json upper = in.doc["bodies"][0];
-  upper["name"] = "upper";
-  for (const char* key : {"min", "max"}) {
-    for (int d = 0; d < D; ++d)
-      upper["shape"][key][d] = upper["shape"][key][d].get<double>() + lift * in.normal[d];
-  }
-  in.doc["bodies"].push_back(upper);
+  add_lifted_block<D>(in, lift);
   in.doc["scheme"]["update"] = update;
   const Scene scene = parse_scene(in.doc, "<coupling overlap ways>");
   // One thread: the coupling task and the free pass on the same thread, in whatever order TBB
