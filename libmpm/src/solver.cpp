@@ -1023,7 +1023,7 @@ void Solver<D>::sample_and_update_stress(double dt, Sample&& sample) {
 // depends on the coupling and on the machine: a coupling with parallel parts of its own
 // (Enhanced's assembly) runs longer beside the gather than alone on both cores, and on the
 // shared two-core host of docs/performance.md the mortar floor's (refined against an aged
-// factor, 2.4 ms) gains by the overlap under MLS-MPM and not under MUSL, Enhanced's loses. So
+// factor, 2.4 ms) gains by the overlap under MLS-MPM and not under MUSL, Enhanced's neither. So
 // each call measures its time from the coupling's start to the gather's end and runs the way
 // that has lately been faster (couple_beside_next()). The phase timers charge an overlapped
 // coupling its own duration, taken from what the pass was charged over the same time, so the
@@ -1051,7 +1051,7 @@ void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
     // The coupling is the task (the other thread takes it) and this thread gathers the free
     // particles, which the other joins when it has coupled. (The other way round, the free pass
     // the task and the coupling this thread's, both gathers ran half as slow again per particle
-    // on the two-core host: the mortar floor under MLS-MPM 1.60-1.69 times the standard step
+    // on the two-core host: the mortar floor under MLS-MPM 1.50-1.71 times the standard step
     // against 1.39, docs/performance.md.) The coupling touches no phase timer: its own duration
     // is taken inside the task.
     double coupling = 0.0;
