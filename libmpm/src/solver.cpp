@@ -1031,16 +1031,13 @@ void Solver<D>::sample_and_update_stress(double dt, Sample&& sample) {
 template <int D>
 template <class Pass>
 void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
-  // Nothing to overlap where no wall has layer particles this step (its coupling is no work).
-  if (std::ranges::none_of(dual_, [](const auto& w) { return w.layer_particles > 0; })) {
-    layer_couple(remapped);
-    lap(&PhaseTimes::coupling);
-    pass(Reach::all);
-    return;
-  }
+  // Nothing to overlap, nor to time, where no wall has layer particles this step (its coupling
+  // is no work).
+  const bool coupled =
+      std::ranges::any_of(dual_, [](const auto& w) { return w.layer_particles > 0; });
   using Clock = std::chrono::steady_clock;
   const int call = remapped ? 1 : 0;
-  const bool beside = couple_beside_next(call);
+  const bool beside = coupled && couple_beside_next(call);
   const auto start = Clock::now();
   if (!beside) {
     layer_couple(remapped);
@@ -1075,6 +1072,7 @@ void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
     }
     pass(Reach::near);
   }
+  if (!coupled) return;
   OverlapTimes& t = overlap_[static_cast<std::size_t>(call)];
   const auto way = static_cast<std::size_t>(beside ? 1 : 0);
   const double seconds = std::chrono::duration<double>(Clock::now() - start).count();
@@ -1088,13 +1086,12 @@ void Solver<D>::couple_beside(bool remapped, Pass&& pass) {
 // time: each way twice first, alternately, then the one with the smaller recent mean, and the
 // other every 16th call (a way that lost once is measured again as things change).
 template <int D>
-bool Solver<D>::couple_beside_next(int call) {
+bool Solver<D>::couple_beside_next(int call) const {
   if (overlap_mode_ != CouplingOverlap::adaptive) return overlap_mode_ == CouplingOverlap::beside;
-  OverlapTimes& t = overlap_[static_cast<std::size_t>(call)];
-  ++t.calls;
+  const OverlapTimes& t = overlap_[static_cast<std::size_t>(call)];
   if (t.runs[0] < 2 || t.runs[1] < 2) return t.runs[1] <= t.runs[0];
   const bool faster = t.mean[1] <= t.mean[0];
-  return t.calls % 16 == 0 ? !faster : faster;
+  return (t.runs[0] + t.runs[1] + 1) % 16 == 0 ? !faster : faster;  // this call's number
 }
 
 template <int D>

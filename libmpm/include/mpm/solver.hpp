@@ -341,16 +341,15 @@ class Solver final : public Simulation {
   /// Per particle, this step (locate_in_layers()): coupled_cell_ of its cell.
   std::vector<std::uint8_t> near_coupling_;
   /// couple_beside()'s choice, per call (the gather's, the MUSL remap's): each way's recent
-  /// time from the coupling's start to the gather's end ([0] after, [1] beside), how many times
-  /// each was measured, and the calls so far (couple_beside_next()).
+  /// time from the coupling's start to the gather's end ([0] after, [1] beside) and how many
+  /// times each ran (couple_beside_next()).
   struct OverlapTimes {
     std::array<double, 2> mean{};
     std::array<std::size_t, 2> runs{};
-    std::size_t calls = 0;
   };
   std::array<OverlapTimes, 2> overlap_;
   CouplingOverlap overlap_mode_ = CouplingOverlap::adaptive;
-  bool couple_beside_next(int call);
+  [[nodiscard]] bool couple_beside_next(int call) const;
   /// Signed-distance walls (the baseline): standard-grid nodes on or behind the surface, within
   /// reach of the kernel, with the unit normal into the material at each.
   struct SdfWall {
