@@ -1191,6 +1191,7 @@ void Solver<D>::layer_couple(bool remapped) {
         if (!same_rows) ++w.reshapes;
         if (!(same_rows && same(w.grid_entries, w.kept_grid_entries) &&
               same(w.layer_entries, w.kept_layer_entries))) {
+          w.transposes_current = false;
           assign_by_columns(w.grid_active, static_cast<Eigen::Index>(w.grid_rows.size()), k,
                             w.grid_entries, w.assembly_work);
           assign_by_columns(w.boundary_active, static_cast<Eigen::Index>(w.layer_rows.size()), k,
@@ -1259,12 +1260,65 @@ void Solver<D>::layer_couple(bool remapped) {
       w.lambda.resize(k, D);
       w.residual.resize(k, D);
       w.update.resize(k, D);
-      for (Eigen::Index r = 0; r < ng; ++r) a.row(r) = va[w.grid_rows[r]].transpose();
-      for (Eigen::Index r = 0; r < nl; ++r) b.row(r) = valpha[w.layer_rows[r]].transpose();
+      if (!w.transposes_current) {
+        transpose_into(w.grid_active, w.grid_active_t);
+        transpose_into(w.boundary_active, w.boundary_active_t);
+        w.transposes_current = true;
+      }
+      // The products with R^A and R^alpha on both cores, by rows of the result, each row's sum
+      // over its entries in the order Eigen's products take them (the same values to the bit).
+      // Rows r of (R^A x, R^alpha x), x a block of k rows, to out(r, which), which 0 for R^A
+      // and 1 for R^alpha (rows of R^alpha only where `both`).
+      auto by_rows = [&](const Block& x, bool both, auto&& out) {
+        const Eigen::Index rows = ng + (both ? nl : 0);
+        tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, rows, 512), [&](const auto& range) {
+          for (Eigen::Index i = range.begin(); i != range.end(); ++i) {
+            const bool grid_row = i < ng;
+            const Eigen::Index r = grid_row ? i : i - ng;
+            double sum[D] = {};
+            for (Eigen::SparseMatrix<double>::InnerIterator it(
+                     grid_row ? w.grid_active_t : w.boundary_active_t, r);
+                 it; ++it) {
+              for (int c = 0; c < D; ++c) sum[c] += it.value() * x(it.row(), c);
+            }
+            out(r, grid_row ? 0 : 1, sum);
+          }
+        });
+      };
+      // Columns j of (R^A^T u, R^alpha^T v) to out(j, sums of R^A, sums of R^alpha).
+      auto by_columns = [&](const Block& u, const Block& v, bool both, auto&& out) {
+        tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, k, 256), [&](const auto& range) {
+          for (Eigen::Index j = range.begin(); j != range.end(); ++j) {
+            double sum[D] = {}, more[D] = {};
+            for (Eigen::SparseMatrix<double>::InnerIterator it(w.grid_active, j); it; ++it) {
+              for (int c = 0; c < D; ++c) sum[c] += it.value() * u(it.row(), c);
+            }
+            if (both) {
+              for (Eigen::SparseMatrix<double>::InnerIterator it(w.boundary_active, j); it; ++it) {
+                for (int c = 0; c < D; ++c) more[c] += it.value() * v(it.row(), c);
+              }
+            }
+            out(j, sum, more);
+          }
+        });
+      };
+      tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, ng + nl, 1024), [&](const auto& range) {
+        for (Eigen::Index i = range.begin(); i != range.end(); ++i) {
+          if (i < ng) {
+            a.row(i) = va[w.grid_rows[i]].transpose();
+          } else {
+            b.row(i - ng) = valpha[w.layer_rows[i - ng]].transpose();
+          }
+        }
+      });
       // gap = R^A^T v^A - R^alpha^T v^alpha; the larger term's size is the scale refine()
       // measures the constraint's residual against.
-      w.gap.noalias() = w.grid_active.transpose() * a;
-      w.residual.noalias() = w.boundary_active.transpose() * b;
+      by_columns(a, b, true, [&](Eigen::Index j, const double* grid_sum, const double* layer_sum) {
+        for (int c = 0; c < D; ++c) {
+          w.gap(j, c) = grid_sum[c];
+          w.residual(j, c) = layer_sum[c];
+        }
+      });
       const double scale = std::max(w.gap.norm(), w.residual.norm());
       w.gap -= w.residual;
       // The grids agree at Phi already, to the coupling's tolerance of the interface terms
@@ -1286,16 +1340,24 @@ void Solver<D>::layer_couple(bool remapped) {
         // the coupling's tolerance of x, or a residual below it of the interface terms);
         // unconverged (the masses moved too far from the factorised step's), factorise this
         // step's S. The products run through a and b, free by now.
+        // S x = R^A^T (M_A^-1 R^A x) (+ R^alpha^T (M_alpha^-1 R^alpha x)) + shift x.
         auto apply = [&](const Block& x, Block& y) {
-          a.noalias() = w.grid_active * x;
-          a = w.inv_grid_mass.asDiagonal() * a;
-          y.noalias() = w.grid_active.transpose() * a;
-          if (mortar) {
-            b.noalias() = w.boundary_active * x;
-            b = w.inv_layer_mass.asDiagonal() * b;
-            y.noalias() += w.boundary_active.transpose() * b;
-          }
-          y += w.schur_shift * x;
+          y.resize(k, D);  // (sized once: the caller's scratch)
+          by_rows(x, mortar, [&](Eigen::Index r, int which, const double* sum) {
+            for (int c = 0; c < D; ++c) {
+              if (which == 0) {
+                a(r, c) = sum[c] * w.inv_grid_mass[r];
+              } else {
+                b(r, c) = sum[c] * w.inv_layer_mass[r];
+              }
+            }
+          });
+          by_columns(a, b, mortar,
+                     [&](Eigen::Index j, const double* grid_sum, const double* layer_sum) {
+                       for (int c = 0; c < D; ++c) {
+                         y(j, c) = (grid_sum[c] + layer_sum[c]) + w.schur_shift * x(j, c);
+                       }
+                     });
         };
         if (conjugate_refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
                              w.update, w.search, w.search_product, scale,
@@ -1309,18 +1371,17 @@ void Solver<D>::layer_couple(bool remapped) {
           factor_solve(w.gap, w.lambda);
         }
       }
-      a.noalias() = w.grid_active * w.lambda;
-      for (Eigen::Index r = 0; r < ng; ++r) {
-        const int n = w.grid_rows[r];
-        va[n] -= a.row(r).transpose() / grid.mass[n];
-      }
-      if (mortar) {
-        b.noalias() = w.boundary_active * w.lambda;
-        for (Eigen::Index r = 0; r < nl; ++r) {
-          const int n = w.layer_rows[r];
-          valpha[n] += b.row(r).transpose() / w.mass[n];
+      // The impulses: v^A -= M_A^-1 R^A lambda, v^alpha += M_alpha^-1 R^alpha lambda (mortar).
+      by_rows(w.lambda, mortar, [&](Eigen::Index r, int which, const double* sum) {
+        const Vec<D> impulse = Eigen::Map<const Vec<D>>(sum);
+        if (which == 0) {
+          const int n = w.grid_rows[static_cast<std::size_t>(r)];
+          va[n] -= impulse / grid.mass[n];
+        } else {
+          const int n = w.layer_rows[static_cast<std::size_t>(r)];
+          valpha[n] += impulse / w.mass[n];
         }
-      }
+      });
     };
     const PartTimer<D> timer(w, w.solve_seconds);
     if (remapped) {

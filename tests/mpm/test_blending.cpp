@@ -31,6 +31,7 @@
 
 #include "mpm/solver.hpp"
 #include "support/run_until.hpp"
+#include "support/shapes.hpp"
 
 namespace mpm {
 namespace {
@@ -1659,6 +1660,79 @@ TEST_P(CouplingOverlapWays, SameParticlesBitForBit3D) {
 
 INSTANTIATE_TEST_SUITE_P(MethodAndUpdate, CouplingOverlapWays,
                          ::testing::Combine(::testing::Values("mortar", "enhanced"),
+                                            ::testing::Values("musl", "mls")),
+                         method_and_shape_name);
+
+// The Phi coupling's products with R^A and R^alpha run on both cores, each row of a product
+// summed by one task in the order Eigen's products sum it (layer_couple()): one thread and two
+// give the same particles bit for bit. A block resting on a floor mesh 0.3 h off the grid lines
+// (the floor benchmark's, smaller), large enough that the products' rows (about 1,400) and
+// multipliers (about 500) split into several tasks; the first steps factorise, the later ones
+// refine against that factor (the conjugate gradients' products).
+class PhiCouplingThreads : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {};
+
+TEST_P(PhiCouplingThreads, SameParticlesOnOneAndTwoThreads) {
+  const auto& [method, update] = GetParam();
+  const double h = 0.05, base = 0.3 * h;
+  const nlohmann::json doc = {
+      {"dimension", 3},
+      {"grid", {{"min", {-h, -h, 0.0}}, {"max", {1.0 + h, 1.0 + h, 12 * h}}, {"spacing", h}}},
+      {"shape_function", "bspline2"},
+      {"scheme", {{"update", update}, {"transfer", "apic"}}},
+      {"gravity", {0.0, 0.0, -9.81}},
+      {"materials",
+       {{{"name", "rubber"},
+         {"model", "neo_hookean"},
+         {"density", 1000.0},
+         {"youngs_modulus", 1.0e6},
+         {"poisson_ratio", 0.3}}}},
+      {"bodies",
+       {{{"material", "rubber"},
+         {"shape",
+          {{"type", "box"},
+           {"min", {0.0, 0.0, base}},
+           {"max", {1.0, 1.0, base + 10 * h}},
+           {"lattice", "body"}}},  // resting on the floor from the start
+         {"particles_per_cell", 2}}}},
+      {"walls",
+       {{{"name", "floor"},
+         {"method", method},
+         {"condition", "slip"},
+         {"separable", true},
+         {"surface",
+          {{"type", "mesh"},
+           {"file", test::floor_plane_file("mpm_phi_threads", base, -h, 1.0 + h).string()},
+           {"remesh", true}}}}}},
+      {"time", {{"end", 1.0}}},
+  };
+  const Scene scene = parse_scene(doc, "<phi coupling threads>");
+  std::vector<std::unique_ptr<Solver<3>>> runs;
+  for (const int threads : {1, 2}) {
+    const tbb::global_control limit(tbb::global_control::max_allowed_parallelism, threads);
+    runs.push_back(std::make_unique<Solver<3>>(scene));
+    const double dt = runs.back()->stable_dt(0.4);
+    for (int step = 0; step < 12; ++step) runs.back()->step(dt);
+    ASSERT_FALSE(runs.back()->fault().has_value()) << *runs.back()->fault();
+  }
+  const std::vector<CouplingWork> work = runs[0]->coupling_work();
+  ASSERT_EQ(work.size(), 1U);
+  EXPECT_GT(work[0].multipliers, 256U);  // more than one task's columns
+  EXPECT_GT(work[0].refinement_passes, 0U) << "no step refined: the products were not used";
+  std::printf("%zu particles, %zu multipliers, %zu factorisations, %zu refinement passes\n",
+              runs[0]->particles.size(), work[0].multipliers, work[0].factorizations,
+              work[0].refinement_passes);
+  const Particles<3>& a = runs[0]->particles;
+  const Particles<3>& b = runs[1]->particles;
+  for (std::size_t p = 0; p < a.size(); ++p) {
+    ASSERT_EQ(a.position[p], b.position[p]) << "particle " << p;
+    ASSERT_EQ(a.velocity[p], b.velocity[p]) << "particle " << p;
+    ASSERT_EQ(a.affine[p], b.affine[p]) << "particle " << p;
+    ASSERT_EQ(a.stress[p], b.stress[p]) << "particle " << p;
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(MethodAndUpdate, PhiCouplingThreads,
+                         ::testing::Combine(::testing::Values("mortar", "one-way"),
                                             ::testing::Values("musl", "mls")),
                          method_and_shape_name);
 

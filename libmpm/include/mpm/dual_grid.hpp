@@ -448,6 +448,10 @@ struct DualWall {
   /// Kept rows (compacted: row k is node grid_rows[k] / layer_rows[k]) and rescaled columns, so
   /// the per-step work scales with the interface, not with the whole grid.
   Eigen::SparseMatrix<double> grid_active, boundary_active;
+  /// Their transposes (column r: row r's entries), for the coupling's products by rows on
+  /// both cores (layer_couple()); made again after grid_active and boundary_active change.
+  Eigen::SparseMatrix<double> grid_active_t, boundary_active_t;
+  bool transposes_current = false;
   std::vector<int> grid_rows, layer_rows;
   /// Inverses of grid_rows (node_row(): valid where grid_rows points back; page-backed, so a
   /// wall on a sparse grid holds memory only near its rows) and of layer_rows (-1: not a row
