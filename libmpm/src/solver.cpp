@@ -1158,18 +1158,33 @@ void Solver<D>::advect_and_check(double dt) {
     double max_speed = 0.0;
     std::size_t first_bad = static_cast<std::size_t>(-1);
   };
+  // By locate_in_layers()'s chunks, each adding its farthest move to its travel.
+  constexpr std::size_t kChunk = kLocateChunk;
+  const std::size_t chunks = (P.size() + kChunk - 1) / kChunk;
+  const bool travels = chunk_travel_.size() == chunks;
   const Scan scan = tbb::parallel_reduce(
-      tbb::blocked_range<std::size_t>(0, P.size(), 2048), Scan{},
+      tbb::blocked_range<std::size_t>(0, chunks, 2), Scan{},
       [&](const auto& r, Scan s) {
-        for (std::size_t p = r.begin(); p != r.end(); ++p) {
-          P.position[p] += P.displacement.empty() ? Vec<D>(dt * P.velocity[p]) : P.displacement[p];
-          const double speed = P.velocity[p].norm();
-          const Vec<D> xg = (P.position[p] - grid.origin) * grid.inv_h;
-          const bool ok = std::isfinite(speed) && std::isfinite(P.stress[p].sum()) &&
-                          P.deformation_gradient[p].determinant() > 0.0 &&
-                          (xg.array() >= lo_g).all() && (xg.array() <= hi_g.array()).all();
-          if (!ok) s.first_bad = std::min(s.first_bad, p);
-          s.max_speed = std::max(s.max_speed, speed);
+        for (std::size_t chunk = r.begin(); chunk != r.end(); ++chunk) {
+          double farthest = 0.0;  // squared
+          const std::size_t end = std::min(P.size(), (chunk + 1) * kChunk);
+          for (std::size_t p = chunk * kChunk; p != end; ++p) {
+            const Vec<D> move =
+                P.displacement.empty() ? Vec<D>(dt * P.velocity[p]) : P.displacement[p];
+            P.position[p] += move;
+            farthest = std::max(farthest, move.squaredNorm());
+            const double speed = P.velocity[p].norm();
+            const Vec<D> xg = (P.position[p] - grid.origin) * grid.inv_h;
+            const bool ok = std::isfinite(speed) && std::isfinite(P.stress[p].sum()) &&
+                            P.deformation_gradient[p].determinant() > 0.0 &&
+                            (xg.array() >= lo_g).all() && (xg.array() <= hi_g.array()).all();
+            if (!ok) {
+              s.first_bad = std::min(s.first_bad, p);
+              farthest = std::numeric_limits<double>::infinity();  // (a position not finite)
+            }
+            s.max_speed = std::max(s.max_speed, speed);
+          }
+          if (travels) chunk_travel_[chunk] += std::sqrt(farthest);
         }
         return s;
       },
@@ -1377,6 +1392,7 @@ void Solver<D>::restore_state(const Checkpoint& c) {
   }
   unflatten(c.real("solver.wall_impulse", 3 * wall_impulse_.size()), wall_impulse_);
   max_speed_ = c.real("solver.max_speed", 1)[0];
+  locate_limit_.clear();  // the particles moved: the next step looks at every one
   for (std::size_t i = 0; i < dual_.size(); ++i) {
     EnhancedState<D>& e = dual_[i].enh;
     const auto& s = c.integer("solver.enhanced_state_" + std::to_string(i));

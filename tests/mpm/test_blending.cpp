@@ -1663,6 +1663,81 @@ INSTANTIATE_TEST_SUITE_P(MethodAndUpdate, CouplingOverlapWays,
                                             ::testing::Values("musl", "mls")),
                          method_and_shape_name);
 
+// locate_in_layers() skips the particles that cannot have reached a layer's or a coupling's
+// cells since it last looked at them (their travel less than their distance from those cells
+// then): the same layer particles and near-coupling flags every step, and the same particles bit
+// for bit, as looking at every particle every step. The incline's block lifted `lift` along the
+// normal and thrown at the incline: its particles start far from the layer (skipped) and cross
+// cells into it within the run, so a skipped particle must be looked at again in time.
+template <int D>
+void expect_locate_skipping_exact(InclineScene in, double lift, double speed, int steps) {
+  json& block = in.doc["bodies"][0];
+  block["velocity"] = json::array();
+  for (int d = 0; d < D; ++d) {
+    for (const char* key : {"min", "max"}) {
+      block["shape"][key][d] = block["shape"][key][d].get<double>() + lift * in.normal[d];
+    }
+    block["velocity"].push_back(-speed * in.normal[d]);
+  }
+  if (block["shape"].contains("center")) {
+    for (int d = 0; d < D; ++d) {
+      block["shape"]["center"][d] = block["shape"]["center"][d].get<double>() + lift * in.normal[d];
+    }
+  }
+  const Scene scene = parse_scene(in.doc, "<locate skipping>");
+  Solver<D> skipping(scene), every(scene);
+  every.set_locate_skipping(false);
+  const double dt = skipping.stable_dt(0.5);
+  std::size_t most_in_layer = 0;
+  int step = 0;
+  for (int after = 0; step < 2000 && after < steps; ++step) {  // `steps` once in the layer
+    skipping.step(dt);
+    every.step(dt);
+    ASSERT_FALSE(skipping.fault().has_value()) << *skipping.fault();
+    ASSERT_FALSE(every.fault().has_value()) << *every.fault();
+    const Particles<D>& a = skipping.particles;
+    const Particles<D>& b = every.particles;
+    for (std::size_t p = 0; p < a.size(); ++p) {
+      ASSERT_EQ(a.layer_wall[p], b.layer_wall[p]) << "step " << step << ", particle " << p;
+      ASSERT_EQ(skipping.near_coupling()[p], every.near_coupling()[p])
+          << "step " << step << ", particle " << p;
+    }
+    most_in_layer = std::max(most_in_layer, skipping.dual_walls()[0].layer_particles);
+    if (most_in_layer > 0) ++after;
+  }
+  const Particles<D>& a = skipping.particles;
+  const Particles<D>& b = every.particles;
+  for (std::size_t p = 0; p < a.size(); ++p) {
+    ASSERT_EQ(a.position[p], b.position[p]) << "particle " << p;
+    ASSERT_EQ(a.velocity[p], b.velocity[p]) << "particle " << p;
+    ASSERT_EQ(a.stress[p], b.stress[p]) << "particle " << p;
+  }
+  // Not vacuous: particles were skipped, and the block reached the layer.
+  EXPECT_GT(skipping.locate_skipped(), 0U);
+  EXPECT_EQ(every.locate_skipped(), 0U);
+  EXPECT_GT(most_in_layer, 0U) << "the block never reached the layer";
+  std::printf("%zu particles x %d steps: %zu skipped, at most %zu in the layer\n", a.size(), step,
+              skipping.locate_skipped(), most_in_layer);
+}
+
+class LocateSkipping : public ::testing::TestWithParam<const char*> {};
+
+TEST_P(LocateSkipping, SameLayerAndParticlesAsLookingAtAll2D) {
+  expect_locate_skipping_exact<2>(incline_2d(20.0, 0.5, kInclineH, 0.5, GetParam()), 0.4, 4.0, 30);
+}
+
+TEST_P(LocateSkipping, SameLayerAndParticlesAsLookingAtAll3D) {
+  TempDir dir;
+  expect_locate_skipping_exact<3>(incline_3d(20.0, 0.5, dir.path(), GetParam()), 0.3, 4.0, 30);
+}
+
+INSTANTIATE_TEST_SUITE_P(Method, LocateSkipping, ::testing::Values("mortar", "one-way", "enhanced"),
+                         [](const ::testing::TestParamInfo<const char*>& method) {
+                           std::string name = method.param;
+                           std::replace(name.begin(), name.end(), '-', '_');
+                           return name;
+                         });
+
 // The Phi coupling's products with R^A and R^alpha run on both cores, each row of a product
 // summed by one task in the order Eigen's products sum it (layer_couple()): one thread and two
 // give the same particles bit for bit. A block resting on a floor mesh 0.3 h off the grid lines

@@ -197,6 +197,12 @@ class Solver final : public Simulation {
     return {overlap_[0].runs[0] + overlap_[1].runs[0], overlap_[0].runs[1] + overlap_[1].runs[1]};
   }
 
+  /// locate_in_layers() skips the particles that cannot have reached a layer's or a coupling's
+  /// cells since it last looked at them (the same answers); `false` looks at every particle
+  /// every step (tests compare the two). locate_skipped(): particle-steps skipped so far.
+  void set_locate_skipping(bool on) { locate_skipping_ = on; }
+  [[nodiscard]] std::size_t locate_skipped() const { return locate_skipped_; }
+
   /// Index range [begin, end) of the particles of each material.
   [[nodiscard]] const std::vector<std::pair<std::size_t, std::size_t>>& material_groups() const {
     return groups_;
@@ -340,6 +346,22 @@ class Solver final : public Simulation {
   std::vector<std::uint8_t> coupled_cell_;
   /// Per particle, this step (locate_in_layers()): coupled_cell_ of its cell.
   std::vector<std::uint8_t> near_coupling_;
+  /// locate_in_layers() and advect_and_check() take the particles in chunks of this many.
+  static constexpr std::size_t kLocateChunk = 1024;
+  /// Per standard-grid cell, its distance in cells (the largest of the axes' index
+  /// differences, at most 255) to the nearest cell that a dual-grid wall flags or where
+  /// coupled_cell_ is set (setup_dual_walls()); empty without dual-grid walls.
+  std::vector<std::uint8_t> cell_clearance_;
+  /// Per chunk of particles, how far its fastest particle has moved, summed over the steps
+  /// (advect_and_check()): no particle of the chunk has moved farther since any earlier step.
+  std::vector<double> chunk_travel_;
+  /// Per particle, the chunk's travel up to which it stays outside those cells (its travel
+  /// when locate_in_layers() last looked at it plus its clearance then), and per chunk the
+  /// least of its particles': locate_in_layers() skips them until then.
+  std::vector<double> locate_limit_;
+  std::vector<double> chunk_limit_;
+  bool locate_skipping_ = true;
+  std::size_t locate_skipped_ = 0;
   /// couple_beside()'s choice, per call (the gather's, the MUSL remap's): each way's recent
   /// time from the coupling's start to the gather's end ([0] after, [1] beside) and how many
   /// times each ran (couple_beside_next()).
