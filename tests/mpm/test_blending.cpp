@@ -30,8 +30,8 @@
 #include <nlohmann/json.hpp>
 
 #include "mpm/solver.hpp"
+#include "perf_scenes.hpp"  // bench/
 #include "support/run_until.hpp"
-#include "support/shapes.hpp"
 
 namespace mpm {
 namespace {
@@ -1740,47 +1740,15 @@ INSTANTIATE_TEST_SUITE_P(Method, LocateSkipping, ::testing::Values("mortar", "on
 
 // The Phi coupling's products with R^A and R^alpha run on both cores, each row of a product
 // summed by one task in the order Eigen's products sum it (layer_couple()): one thread and two
-// give the same particles bit for bit. A block resting on a floor mesh 0.3 h off the grid lines
-// (the floor benchmark's, smaller), large enough that the products' rows (about 1,400) and
-// multipliers (about 500) split into several tasks; the first steps factorise, the later ones
-// refine against that factor (the conjugate gradients' products).
+// give the same particles bit for bit. The floor benchmark's block resting on a floor mesh 0.3 h
+// off the grid lines (bench/perf_scenes.hpp, 20 cells a side: 809 multipliers, so that the
+// products' rows and columns split into several tasks); the first step factorises, the later
+// ones refine against that factor (the conjugate gradients' products).
 class PhiCouplingThreads : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {};
 
 TEST_P(PhiCouplingThreads, SameParticlesOnOneAndTwoThreads) {
   const auto& [method, update] = GetParam();
-  const double h = 0.05, base = 0.3 * h;
-  const nlohmann::json doc = {
-      {"dimension", 3},
-      {"grid", {{"min", {-h, -h, 0.0}}, {"max", {1.0 + h, 1.0 + h, 12 * h}}, {"spacing", h}}},
-      {"shape_function", "bspline2"},
-      {"scheme", {{"update", update}, {"transfer", "apic"}}},
-      {"gravity", {0.0, 0.0, -9.81}},
-      {"materials",
-       {{{"name", "rubber"},
-         {"model", "neo_hookean"},
-         {"density", 1000.0},
-         {"youngs_modulus", 1.0e6},
-         {"poisson_ratio", 0.3}}}},
-      {"bodies",
-       {{{"material", "rubber"},
-         {"shape",
-          {{"type", "box"},
-           {"min", {0.0, 0.0, base}},
-           {"max", {1.0, 1.0, base + 10 * h}},
-           {"lattice", "body"}}},  // resting on the floor from the start
-         {"particles_per_cell", 2}}}},
-      {"walls",
-       {{{"name", "floor"},
-         {"method", method},
-         {"condition", "slip"},
-         {"separable", true},
-         {"surface",
-          {{"type", "mesh"},
-           {"file", test::floor_plane_file("mpm_phi_threads", base, -h, 1.0 + h).string()},
-           {"remesh", true}}}}}},
-      {"time", {{"end", 1.0}}},
-  };
-  const Scene scene = parse_scene(doc, "<phi coupling threads>");
+  const Scene scene = perf::floor_scene(20, std::string(method) == "mortar" ? 1 : 2, update);
   std::vector<std::unique_ptr<Solver<3>>> runs;
   for (const int threads : {1, 2}) {
     const tbb::global_control limit(tbb::global_control::max_allowed_parallelism, threads);
