@@ -200,6 +200,8 @@ class Solver final : public Simulation {
   /// locate_in_layers() skips the particles that cannot have reached a layer's or a coupling's
   /// cells since it last looked at them (the same answers); `false` looks at every particle
   /// every step (tests compare the two). locate_skipped(): particle-steps skipped so far.
+  /// How far a particle can have gone is what step() moved it (or restore_state() resets it):
+  /// code that moves `particles` by hand between steps turns skipping off for the next step.
   void set_locate_skipping(bool on) { locate_skipping_ = on; }
   [[nodiscard]] std::size_t locate_skipped() const { return locate_skipped_; }
 
