@@ -357,6 +357,13 @@ TEST_P(BlendingBarSweep, PlateauContactAndReboundAtTwentyOffsets) {
   std::printf("took %.2f s\n", seconds_since(start));
 }
 
+/// Test name of a method parameter: "one-way" is spelt one_way.
+std::string method_name(const ::testing::TestParamInfo<const char*>& p) {
+  std::string name = p.param;
+  std::ranges::replace(name, '-', '_');
+  return name;
+}
+
 /// Test name of a (method, shape function) parameter: "one-way" is spelt one_way.
 std::string method_and_shape_name(
     const ::testing::TestParamInfo<std::tuple<const char*, const char*>>& p) {
@@ -1508,16 +1515,22 @@ INSTANTIATE_TEST_SUITE_P(Methods, LayerStepCheck, ::testing::Values("mortar", "e
 // cells at every offset; each method and kernel, 2D and 3D.
 class CouplingOverlap : public ::testing::TestWithParam<std::tuple<const char*, const char*>> {};
 
+// Moves a body of the incline scene (a box) `lift` along the incline's normal.
+template <int D>
+void lift_block(const InclineScene& in, json& block, double lift) {
+  for (const char* key : {"min", "max"}) {
+    for (int d = 0; d < D; ++d)
+      block["shape"][key][d] = block["shape"][key][d].get<double>() + lift * in.normal[d];
+  }
+}
+
 // Adds a copy of the incline's block `lift` along the normal, named "upper" (falling freely
 // above the block: its particles reach no coupled node).
 template <int D>
 void add_lifted_block(InclineScene& in, double lift) {
   json upper = in.doc["bodies"][0];
   upper["name"] = "upper";
-  for (const char* key : {"min", "max"}) {
-    for (int d = 0; d < D; ++d)
-      upper["shape"][key][d] = upper["shape"][key][d].get<double>() + lift * in.normal[d];
-  }
+  lift_block<D>(in, upper, lift);
   in.doc["bodies"].push_back(upper);
 }
 
@@ -1672,18 +1685,9 @@ INSTANTIATE_TEST_SUITE_P(MethodAndUpdate, CouplingOverlapWays,
 template <int D>
 void expect_locate_skipping_exact(InclineScene in, double lift, double speed, int steps) {
   json& block = in.doc["bodies"][0];
+  lift_block<D>(in, block, lift);
   block["velocity"] = json::array();
-  for (int d = 0; d < D; ++d) {
-    for (const char* key : {"min", "max"}) {
-      block["shape"][key][d] = block["shape"][key][d].get<double>() + lift * in.normal[d];
-    }
-    block["velocity"].push_back(-speed * in.normal[d]);
-  }
-  if (block["shape"].contains("center")) {
-    for (int d = 0; d < D; ++d) {
-      block["shape"]["center"][d] = block["shape"]["center"][d].get<double>() + lift * in.normal[d];
-    }
-  }
+  for (int d = 0; d < D; ++d) block["velocity"].push_back(-speed * in.normal[d]);
   const Scene scene = parse_scene(in.doc, "<locate skipping>");
   Solver<D> skipping(scene), every(scene);
   every.set_locate_skipping(false);
@@ -1732,11 +1736,7 @@ TEST_P(LocateSkipping, SameLayerAndParticlesAsLookingAtAll3D) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Method, LocateSkipping, ::testing::Values("mortar", "one-way", "enhanced"),
-                         [](const ::testing::TestParamInfo<const char*>& method) {
-                           std::string name = method.param;
-                           std::replace(name.begin(), name.end(), '-', '_');
-                           return name;
-                         });
+                         method_name);
 
 // The Phi coupling's products with R^A and R^alpha run on both cores, each row of a product
 // summed by one task in the order Eigen's products sum it (layer_couple()): one thread and two
