@@ -732,6 +732,12 @@ int run_scene(const Scene& scene, const RunOptions& options) {
       summary["coupling"][c.wall]["kept_steps"] = c.kept_steps;
     }
   }
+  // Which way the couplings met the gather (the adaptive choice's record; the answers are the
+  // same either way).
+  if (!sim->coupling_work().empty()) {
+    const std::array<std::size_t, 2> ways = sim->coupling_overlap_counts();
+    summary["coupling_overlap"] = {{"after", ways[0]}, {"beside", ways[1]}};
+  }
   // The standard grid's memory: its node arrays are backed only where particles have been.
   const mpm::GridMemory g = sim->grid_memory();
   summary["grid_memory"] = {{"nodes", g.nodes},

@@ -379,6 +379,14 @@ TEST_F(CommandLine, SummaryReportsTheCouplingsWork) {
   EXPECT_GT(seconds.at("analysis").get<double>(), 0.0);
   EXPECT_GT(seconds.at("factorization").get<double>(), 0.0);
   EXPECT_LE(parts, read_summary().at("phase_seconds").at("steps_total").get<double>());
+  // Each step couples twice (MUSL, the default, couples its remap too), after the gather or
+  // beside it: the adaptive choice tries each way twice before it picks.
+  const json summary_mortar = read_summary();
+  const json ways = summary_mortar.at("coupling_overlap");
+  EXPECT_EQ(ways.at("after").get<long>() + ways.at("beside").get<long>(),
+            2 * summary_mortar.at("steps").get<long>());
+  EXPECT_GE(ways.at("after").get<long>(), 2);
+  EXPECT_GE(ways.at("beside").get<long>(), 2);
   // Merged within h: the greedy pass from the floor's end node makes pairs, 11 -> 6.
   scene["walls"][0]["multiplier_radius"] = 1.0;
   write_scene(scene);

@@ -135,6 +135,12 @@ class Simulation {
   [[nodiscard]] virtual const PhaseTimes& phase_times() const = 0;
   /// One entry per dual-grid wall (Blending or Enhanced; sdf walls have no coupling).
   [[nodiscard]] virtual std::vector<CouplingWork> coupling_work() const = 0;
+  /// How the dual-grid couplings met the gather, counted over the calls since construction
+  /// (Solver::CouplingOverlap; one a step, two under MUSL, whose remap is coupled too; calls in
+  /// steps without layer particles are not counted): [0] "after", the coupling first and then
+  /// the gather of every particle; [1] "beside", the coupling on one core while the other
+  /// gathers the particles it cannot change.
+  [[nodiscard]] virtual std::array<std::size_t, 2> coupling_overlap_counts() const = 0;
   [[nodiscard]] virtual GridMemory grid_memory() const = 0;
 };
 
@@ -193,7 +199,7 @@ class Solver final : public Simulation {
   enum class CouplingOverlap { adaptive, beside, after };
   void set_coupling_overlap(CouplingOverlap mode) { overlap_mode_ = mode; }
   /// How many times each way ran: [0] after the coupling, [1] beside it.
-  [[nodiscard]] std::array<std::size_t, 2> coupling_overlap_counts() const {
+  [[nodiscard]] std::array<std::size_t, 2> coupling_overlap_counts() const override {
     return {overlap_[0].runs[0] + overlap_[1].runs[0], overlap_[0].runs[1] + overlap_[1].runs[1]};
   }
 
