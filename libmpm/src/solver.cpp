@@ -1365,6 +1365,7 @@ void Solver<D>::save_state(Checkpoint& c) const {
     c.integers[phi + "factored"] = {dual_[i].schur_factored ? 1 : 0,
                                     static_cast<std::int64_t>(dual_[i].factored_structure),
                                     dual_[i].refine_wait, dual_[i].refine_backoff};
+    c.integers[phi + "dropped"] = {dual_[i].use_dropped ? 1 : 0, dual_[i].dropped_checked ? 1 : 0};
     if (dual_[i].schur_factored) save_sparse(c, phi + "schur", dual_[i].schur_base);
   }
 }
@@ -1433,6 +1434,15 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     w.refine_backoff = static_cast<int>(coupling[3]);
     if (coupling[0] != 0) {
       refactorise(phi + "schur", w.schur_base, *w.schur, w.pattern_hash, w.schur_factored);
+    }
+    // Which copy of L CG reads (absent from a checkpoint written before there was a choice:
+    // the dropped one).
+    w.use_dropped = true;
+    w.dropped_checked = true;
+    if (const auto it = c.integers.find(phi + "dropped"); it != c.integers.end()) {
+      if (it->second.size() != 2) throw std::runtime_error(phi + "dropped: expected 2 values");
+      w.use_dropped = it->second[0] != 0;
+      w.dropped_checked = it->second[1] != 0;
     }
   }
 }

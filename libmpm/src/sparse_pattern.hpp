@@ -334,6 +334,10 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
   const int* outer = l.outerIndexPtr();
   const int* inner = l.innerIndexPtr();
   const Eigen::VectorXd& d = solver.diagonal();
+  if (values == LdltValues::dropped &&
+      solver.dropped().outer.size() != static_cast<std::size_t>(n) + 1) {
+    throw std::logic_error("ldlt_solve: no dropped copy of L for this factorisation");
+  }
   if (values == LdltValues::single && !solver.rounded()) {
     throw std::logic_error("ldlt_solve: L not rounded to single precision since it was factorised");
   }
@@ -523,8 +527,40 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
       for (auto run = runs.all.rbegin(); run != runs.all.rend(); ++run) backward_run(*run, below0);
     }
   };
+  // The dropped copy: plain column sweeps (its columns share few rows: no runs, one thread).
+  auto apply_dropped = [&](auto fixed) {
+    constexpr int C = decltype(fixed)::value;
+    const SparseLdlt::Dropped& dl = solver.dropped();
+    double* const rows = work.data();
+    const int count = static_cast<int>(n);
+    for (int j = 0; j < count; ++j) {
+      double xj[C];
+      for (int c = 0; c < C; ++c) xj[c] = rows[static_cast<std::size_t>(j) * C + c];
+      for (int p = dl.outer[j]; p < dl.outer[j + 1]; ++p) {
+        double* xi = &rows[static_cast<std::size_t>(dl.inner[p]) * C];
+        const double v = dl.value[p];
+        for (int c = 0; c < C; ++c) xi[c] -= xj[c] * v;
+      }
+    }
+    for (int j = 0; j < count; ++j) {
+      const double inverse = 1.0 / d[j];
+      for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(j) * C + c] *= inverse;
+    }
+    for (int i = count - 1; i >= 0; --i) {
+      double xi[C];
+      for (int c = 0; c < C; ++c) xi[c] = rows[static_cast<std::size_t>(i) * C + c];
+      for (int p = dl.outer[i]; p < dl.outer[i + 1]; ++p) {
+        const double* xk = &rows[static_cast<std::size_t>(dl.inner[p]) * C];
+        const double v = dl.value[p];
+        for (int c = 0; c < C; ++c) xi[c] -= v * xk[c];
+      }
+      for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(i) * C + c] = xi[c];
+    }
+  };
   auto apply_columns = [&](auto fixed) {
-    if (values == LdltValues::single) {
+    if (values == LdltValues::dropped) {
+      apply_dropped(fixed);
+    } else if (values == LdltValues::single) {
       apply_rows(fixed, solver.single_values().data());
     } else {
       apply_rows(fixed, l.valuePtr());

@@ -305,7 +305,8 @@ bool refine_against(const Eigen::SparseMatrix<double>& a, const Eigen::SparseMat
                     const Block3& b, Block3& x, std::size_t& passes, double scale,
                     bool conjugate = false, LdltValues values = LdltValues::full,
                     double tolerance = kRefineTolerance) {
-  SparseLdlt solver(values);
+  // (A solver made to keep single-precision copies keeps the dropped one too.)
+  SparseLdlt solver(values == LdltValues::full ? LdltValues::full : LdltValues::single);
   solver.compute(a);
   if (values == LdltValues::single) solver.round_to_single();
   std::vector<double> work;
@@ -532,6 +533,65 @@ TEST(SparseSolve, SinglePrecisionFactorPreconditionsAsWellAsTheFullOne) {
   solver.factorize(near);
   EXPECT_FALSE(solver.rounded());
   EXPECT_THROW(ldlt_solve(solver, b, single, work, LdltValues::single), std::logic_error);
+}
+
+// The Phi coupling's CG passes read L's dropped copy (SparseLdlt::dropped(): the entries of at
+// least kDropBelow of their row's scale, in single precision). As a preconditioner of a later
+// matrix it costs no more passes than all of L where the matrix has moved more than the
+// dropped entries weigh, and CG's answer is as exact.
+TEST(SparseSolve, DroppedFactorPreconditionsAsWellAsTheFullOne) {
+  // Wide neighbourhoods, as the Phi coupling's S: L fills with entries that decay away from
+  // the diagonal, about half of them below 1e-4 of their row here (the floor benchmark's S:
+  // four fifths).
+  const Eigen::SparseMatrix<double> a = grid_spd(30, 3);
+  const Block3 b = random_block(a.rows(), 47);
+  SparseLdlt plain;  // keeps no copy
+  plain.compute(a);
+  std::vector<double> work;
+  Block3 full, dropped;
+  EXPECT_THROW(ldlt_solve(plain, b, dropped, work, LdltValues::dropped), std::logic_error);
+  SparseLdlt solver(LdltValues::single);
+  solver.compute(a);
+  const auto kept = static_cast<Eigen::Index>(solver.dropped().inner.size());
+  const Eigen::Index all = solver.matrixL().nestedExpression().nonZeros();
+  EXPECT_LT(3 * kept, 2 * all) << "kept " << kept << " of " << all;
+  EXPECT_GT(kept, 0);
+  // Every entry kept is at least kDropBelow of its row's scale, and every one left out below it.
+  {
+    const auto& l = solver.matrixL().nestedExpression();
+    const Eigen::VectorXd& d = solver.diagonal();
+    Eigen::Index counted = 0;
+    for (Eigen::Index j = 0; j < l.outerSize(); ++j) {
+      for (Eigen::SparseMatrix<double>::InnerIterator it(l, j); it; ++it) {
+        if (it.row() <= j) continue;
+        const double size = std::abs(it.value()) * std::sqrt(d[j] / d[it.row()]);
+        if (size >= SparseLdlt::kDropBelow) ++counted;
+      }
+    }
+    EXPECT_EQ(counted, kept);
+  }
+  ldlt_solve(solver, b, full, work);
+  ldlt_solve(solver, b, dropped, work, LdltValues::dropped);
+  // The left-out entries perturb L D L^T a little: the solve is close to exact, not exact.
+  EXPECT_GT((dropped - full).norm(), 0.0);
+  EXPECT_LE((dropped - full).norm(), 1e-3 * full.norm());
+  // As CG's preconditioner for a later matrix (the diagonal moved 0.2%): at most one pass more
+  // than with all of L, and the answer to 1e-10, since CG's residual is formed in double.
+  const Eigen::SparseMatrix<double> near = moved(a, 0.002);
+  std::size_t passes_full = 0, passes_dropped = 0;
+  Block3 x;
+  ASSERT_TRUE(refine_against(a, near, b, x, passes_full, 0.0, true));
+  ASSERT_TRUE(refine_against(a, near, b, x, passes_dropped, 0.0, true, LdltValues::dropped));
+  EXPECT_LE(passes_dropped, passes_full + 1);
+  const Block3 reference = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>(near).solve(b);
+  EXPECT_LE((x - reference).norm(), 1e-10 * reference.norm());
+  std::printf("dropped copy: %ld of %ld entries; CG passes %zu (all of L: %zu)\n",
+              static_cast<long>(kept), static_cast<long>(all), passes_dropped, passes_full);
+  // A new factorisation makes its own copy.
+  solver.factorize(near);
+  ldlt_solve(solver, b, dropped, work, LdltValues::dropped);
+  ldlt_solve(solver, b, full, work);
+  EXPECT_LE((dropped - full).norm(), 1e-3 * full.norm());
 }
 
 /// `m` with entries of size `size` times their row's diagonal added between node pairs 3 and 4

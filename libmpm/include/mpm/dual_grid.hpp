@@ -72,8 +72,11 @@ ColumnRuns column_runs(const Eigen::SparseMatrix<double>& l, const SubtreeSplit&
 
 /// Which values of L a solve with a SparseLdlt reads (ldlt_solve(), sparse_pattern.hpp).
 enum class LdltValues {
-  full,   ///< L as factorised: the solve is exact to round-off
-  single  ///< L rounded to single precision (SparseLdlt::round_to_single()): a preconditioner
+  full,    ///< L as factorised: the solve is exact to round-off
+  single,  ///< L rounded to single precision (SparseLdlt::round_to_single()): a preconditioner
+  /// L's entries of at least SparseLdlt::kDropBelow of their row's scale, in single precision
+  /// (SparseLdlt::dropped()): a cheaper preconditioner
+  dropped
 };
 
 /// Eigen's sparse LDL^T, with read access to D (its vectorD() returns a copy: an allocation
@@ -93,11 +96,14 @@ enum class LdltValues {
 /// slower for it). Only a solver made with LdltValues::single keeps the copy (the Phi
 /// coupling's; Enhanced's, which refines by plain refinement, does not: its L has 1.33 M
 /// entries on the floor, and rounding cost refinement passes, docs/performance.md 2026-12-04).
+/// Such a solver also keeps L's dropped copy (LdltValues::dropped, made by factorize()), which
+/// the Phi coupling's CG reads since 2026-12-07: its passes against an aged factor are set by
+/// how far S has moved, not by L's small entries.
 class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   using Base = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 
  public:
-  /// `kept`: LdltValues::single to keep L's single-precision copy as well.
+  /// `kept`: LdltValues::single to keep L's single-precision copy and its dropped copy as well.
   explicit SparseLdlt(LdltValues kept = LdltValues::full)
       : keeps_single_(kept == LdltValues::single) {}
   [[nodiscard]] const Eigen::VectorXd& diagonal() const { return m_diag; }
@@ -116,6 +122,19 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     std::copy(l.valuePtr(), l.valuePtr() + l.nonZeros(), single_.begin());
     single_ready_ = true;
   }
+  /// The dropped copy of L (LdltValues::dropped), made by factorize() for a solver that keeps
+  /// a single-precision L: by columns, the entries l_ij (i > j) with |l_ij| (d_j / d_i)^1/2 of
+  /// at least kDropBelow, i.e. of the factor L D^1/2's row i scaled by its diagonal. The
+  /// Phi coupling's S (its multipliers' supports overlap along the surface) has most of its
+  /// fill far below that: the floor benchmark's factor keeps 57,881 of its 261,001 entries,
+  /// and a CG pass against an aged factor takes as many passes with the copy as with all of L
+  /// (docs/performance.md, 2026-12-07, evening).
+  static constexpr double kDropBelow = 1e-4;
+  struct Dropped {
+    std::vector<int> outer, inner;
+    std::vector<float> value;
+  };
+  [[nodiscard]] const Dropped& dropped() const { return dropped_; }
   void compute(const Eigen::SparseMatrix<double>& a) {
     analyzePattern(a);
     factorize(a);
@@ -137,6 +156,7 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     // Sized here, in the step that factorises (a later step's rounding allocates nothing).
     if (keeps_single_) {
       single_.resize(static_cast<std::size_t>(matrixL().nestedExpression().nonZeros()));
+      if (info() == Eigen::Success) drop_small();
     }
     single_ready_ = false;
     numeric_seconds_ += since(start);
@@ -150,8 +170,31 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   static double since(std::chrono::steady_clock::time_point start) {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   }
+  void drop_small() {
+    const auto& l = matrixL().nestedExpression();
+    const auto n = static_cast<std::size_t>(l.outerSize());
+    dropped_.outer.assign(n + 1, 0);
+    dropped_.inner.clear();
+    dropped_.value.clear();
+    for (std::size_t j = 0; j < n; ++j) {
+      const double dj = std::abs(m_diag[static_cast<Eigen::Index>(j)]);
+      for (int p = l.outerIndexPtr()[j]; p < l.outerIndexPtr()[j + 1]; ++p) {
+        const int i = l.innerIndexPtr()[p];
+        if (i <= static_cast<int>(j)) continue;
+        const double di = std::abs(m_diag[i]);
+        const double v = l.valuePtr()[p];
+        // Kept unless small against row i's scale (a zero pivot keeps its row whole).
+        if (!(std::abs(v) * std::sqrt(dj) < kDropBelow * std::sqrt(di))) {
+          dropped_.inner.push_back(i);
+          dropped_.value.push_back(static_cast<float>(v));
+        }
+      }
+      dropped_.outer[j + 1] = static_cast<int>(dropped_.inner.size());
+    }
+  }
   SubtreeSplit split_;
   ColumnRuns runs_;
+  Dropped dropped_;
   std::vector<float> single_;
   bool keeps_single_ = false;
   bool split_stale_ = true;
@@ -487,6 +530,11 @@ struct DualWall {
   std::size_t factored_structure = 0;  ///< active multipliers' hash when `schur_base` was formed
   bool schur_factored = false;         ///< `schur` holds a valid factorisation (maybe older)
   bool schur_refine = false;           ///< this step's S is solved by refinement
+  /// Whether CG against the factorisation in hand reads L's dropped copy (SparseLdlt::
+  /// dropped()) or all of it in single precision: decided by the first solve with a new
+  /// factorisation, which tries the copy on its own right-hand side (layer_couple()); checked
+  /// tells that it was. A checkpoint saves the choice.
+  bool use_dropped = true, dropped_checked = true;
   /// After a refinement that failed, steps to factorise without trying (refine_wait), and how
   /// many the next failure waits (0 after a success, then 1, doubled per failure up to 64).
   int refine_wait = 0, refine_backoff = 0;
