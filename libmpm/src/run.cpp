@@ -711,7 +711,8 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   }
   // The dual-grid couplings' size and work (since this process started: a resumed run counts
   // from its resume), to see what a wall costs and what "multiplier_radius" saves.
-  for (const mpm::CouplingWork& c : sim->coupling_work()) {
+  const std::vector<mpm::CouplingWork> couplings = sim->coupling_work();
+  for (const mpm::CouplingWork& c : couplings) {
     summary["coupling"][c.wall] = {{"method", c.method},
                                    {"surface_nodes", c.surface_nodes},
                                    {"multipliers", c.multipliers},
@@ -734,7 +735,7 @@ int run_scene(const Scene& scene, const RunOptions& options) {
   }
   // Which way the couplings met the gather (the adaptive choice's record; the answers are the
   // same either way).
-  if (!sim->coupling_work().empty()) {
+  if (!couplings.empty()) {
     const std::array<std::size_t, 2> ways = sim->coupling_overlap_counts();
     summary["coupling_overlap"] = {{"after", ways[0]}, {"beside", ways[1]}};
   }

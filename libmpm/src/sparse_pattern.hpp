@@ -305,7 +305,8 @@ inline void product_into(const Eigen::SparseMatrix<double>* x, const Eigen::Vect
 /// grouped differently from Eigen's (round-off apart), the same for any thread count. At most 3
 /// columns. No allocation once `work` and x have held this size. With LdltValues::single the
 /// solve reads L's single-precision copy (after solver.round_to_single()): a preconditioner's
-/// solve, exact to about 1e-7.
+/// solve, exact to about 1e-7; with LdltValues::dropped, L's dropped copy (SparseLdlt::
+/// dropped()) by plain column sweeps on one thread: a cheaper preconditioner's.
 template <class Rhs>
 void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<double>& work,
                 LdltValues values = LdltValues::full) {
@@ -341,6 +342,14 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
   if (values == LdltValues::single && !solver.rounded()) {
     throw std::logic_error("ldlt_solve: L not rounded to single precision since it was factorised");
   }
+  // rows *= D^-1, C columns to a row (between the forward and the backward solve).
+  auto divide_by_diagonal = [&](auto fixed) {
+    constexpr int C = decltype(fixed)::value;
+    for (Eigen::Index j = 0; j < d.size(); ++j) {
+      const double inverse = 1.0 / d[j];
+      for (int c = 0; c < C; ++c) work[static_cast<std::size_t>(j) * C + c] *= inverse;
+    }
+  };
   // Each row's values are held in locals while its column is applied, so that the compiler
   // need not reload them after every store through the aliasing row pointers.
   // `value`: L's values, double or float (the arithmetic is in double either way).
@@ -481,7 +490,6 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
       }
     };
     constexpr int kAll = std::numeric_limits<int>::max();
-    const int count = static_cast<int>(n);
     double* const spill = rows + rows_size;
     double* const below0 = spill + spill_size;
     double* const below1 = below0 + run_size;
@@ -506,12 +514,7 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
     } else if (l.nonZeros() > 0) {
       for (const auto& run : runs.all) forward_run(run, kAll, nullptr, below0);
     }
-    if (d.size() > 0) {
-      for (int j = 0; j < count; ++j) {
-        const double inverse = 1.0 / d[j];
-        for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(j) * C + c] *= inverse;
-      }
-    }
+    divide_by_diagonal(fixed);
     if (split.parallel) {
       for (auto run = runs.top.rbegin(); run != runs.top.rend(); ++run) backward_run(*run, below0);
       tbb::parallel_invoke(
@@ -542,10 +545,7 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
         for (int c = 0; c < C; ++c) xi[c] -= xj[c] * v;
       }
     }
-    for (int j = 0; j < count; ++j) {
-      const double inverse = 1.0 / d[j];
-      for (int c = 0; c < C; ++c) rows[static_cast<std::size_t>(j) * C + c] *= inverse;
-    }
+    divide_by_diagonal(fixed);
     for (int i = count - 1; i >= 0; --i) {
       double xi[C];
       for (int c = 0; c < C; ++c) xi[c] = rows[static_cast<std::size_t>(i) * C + c];
