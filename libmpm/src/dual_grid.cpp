@@ -1154,7 +1154,6 @@ bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar) {
                           refining, w.factorizations)) {
     fault_ = "dual wall \"" + w.spec->name + "\": the Phi coupling matrix does not factorise";
   }
-  w.dropped_checked = false;  // the first solve with it tries its dropped copy
   return w.schur_factored;
 }
 
@@ -1418,28 +1417,22 @@ void Solver<D>::layer_couple(bool remapped) {
       // Against an earlier step's factor, which only preconditions CG, L's dropped copy
       // (SparseLdlt::dropped(): its entries that matter, in single precision); a factor of this
       // step's S solves in full.
+      const bool use_dropped = w.schur->dropped_use() == SparseLdlt::DroppedUse::usable;
       auto factor_solve = [&](const Block& rhs, Block& x) {
         ldlt_solve(*w.schur, rhs, x, w.solve_work,
                    !w.schur_refine ? LdltValues::full
-                   : w.use_dropped ? LdltValues::dropped
+                   : use_dropped   ? LdltValues::dropped
                                    : LdltValues::single);
       };
       // A new factorisation's dropped copy preconditions well where it solves this step's S
-      // nearly as well as all of L: its answer for the gap within kDroppedAnswer of the exact
-      // one. Otherwise (where S is near singular, its shift holding multipliers the active
-      // nodes cannot all satisfy, the left-out entries can carry its small eigenvalues: the
-      // one-way floor's copy failed CG every step) CG reads all of L in single precision until
-      // the next factorisation.
-      auto check_dropped = [&] {
-        if (w.dropped_checked) return;
-        constexpr double kDroppedAnswer = 0.1;
-        ldlt_solve(*w.schur, w.gap, w.update, w.solve_work, LdltValues::dropped);
-        w.use_dropped = (w.update - w.lambda).norm() <= kDroppedAnswer * w.lambda.norm();
-        w.dropped_checked = true;
+      // nearly as well as all of L (check_dropped(), sparse_pattern.hpp); otherwise CG reads
+      // all of L in single precision until the next factorisation.
+      auto check = [&] {
+        check_dropped(*w.schur, w.gap, w.lambda, w.update, w.solve_work, EuclideanNorm{});
       };
-      if (w.schur_refine && !w.use_dropped) w.schur->round_to_single();
+      if (w.schur_refine && !use_dropped) w.schur->round_to_single();
       factor_solve(w.gap, w.lambda);
-      if (!w.schur_refine) check_dropped();
+      if (!w.schur_refine) check();
       if (w.schur_refine) {
         // CG preconditioned by the factorisation in hand (conjugate_refine(): to an error below
         // the coupling's tolerance of x, or a residual below it of the interface terms);
@@ -1474,7 +1467,7 @@ void Solver<D>::layer_couple(bool remapped) {
           if (!factorise_schur(w, mortar)) return;
           w.schur_refine = false;
           factor_solve(w.gap, w.lambda);
-          check_dropped();
+          check();
         }
       }
       // The impulses: v^A -= M_A^-1 R^A lambda, v^alpha += M_alpha^-1 R^alpha lambda (mortar).

@@ -710,10 +710,10 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
       };
       // Refinement measures x's error as velocities: an impulse unknown counts as the velocity
       // it gives the standard grid's nodes (|M_A^-1 R^A n| times it), so that the tolerance is
-      // one fraction of the velocities for both kinds of unknown, whatever the node masses.
-      // Only refinement against an earlier factorisation reads the weights.
+      // one fraction of the velocities for both kinds of unknown, whatever the node masses;
+      // so does the check of a new factorisation's dropped copy (check_dropped()).
       Eigen::VectorXd& weight = e.impulse_weight;
-      weight.resize(e.kkt_refine ? nc : 0);
+      weight.resize(nc);
       for (Eigen::Index c = 0; c < weight.size(); ++c) {
         double sum = 0.0;
         for (Sparse::InnerIterator it(e.grid_r, rows[c].first); it; ++it) {

@@ -1327,6 +1327,26 @@ Eigen::SparseMatrix<double> restore_sparse(const Checkpoint& c, const std::strin
   return m;
 }
 
+/// A factorisation's SparseLdlt::DroppedUse as a checkpoint saves it: {use, checked}.
+std::array<std::int64_t, 2> dropped_use_pair(const SparseLdlt& solver) {
+  switch (solver.dropped_use()) {
+    case SparseLdlt::DroppedUse::usable:
+      return {1, 1};
+    case SparseLdlt::DroppedUse::unusable:
+      return {0, 1};
+    case SparseLdlt::DroppedUse::unchecked:
+      break;
+  }
+  return {1, 0};
+}
+
+/// The inverse of dropped_use_pair().
+void set_dropped_use(SparseLdlt& solver, std::int64_t use, std::int64_t checked) {
+  solver.set_dropped_use(checked == 0 ? SparseLdlt::DroppedUse::unchecked
+                         : use != 0   ? SparseLdlt::DroppedUse::usable
+                                      : SparseLdlt::DroppedUse::unusable);
+}
+
 }  // namespace
 
 template <int D>
@@ -1356,6 +1376,10 @@ void Solver<D>::save_state(Checkpoint& c) const {
     const auto& s = e.previous_state;
     c.integers["solver.enhanced_state_" + std::to_string(i)].assign(s.begin(), s.end());
     c.integers[key + "factored"] = {e.schur_factored ? 1 : 0, e.kkt_factored ? 1 : 0};
+    const auto schur_dropped = dropped_use_pair(*e.schur_solver);
+    const auto kkt_dropped = dropped_use_pair(*e.kkt_solver);
+    c.integers[key + "dropped"] = {schur_dropped[0], schur_dropped[1], kkt_dropped[0],
+                                   kkt_dropped[1]};
     c.integers[key + "kkt_signature"].assign(e.kkt_signature.begin(), e.kkt_signature.end());
     c.integers[key + "kkt_alpha_cols"].assign(e.kkt_alpha_cols.begin(), e.kkt_alpha_cols.end());
     if (e.schur_factored) save_sparse(c, key + "schur", e.schur_base);
@@ -1365,7 +1389,8 @@ void Solver<D>::save_state(Checkpoint& c) const {
     c.integers[phi + "factored"] = {dual_[i].schur_factored ? 1 : 0,
                                     static_cast<std::int64_t>(dual_[i].factored_structure),
                                     dual_[i].refine_wait, dual_[i].refine_backoff};
-    c.integers[phi + "dropped"] = {dual_[i].use_dropped ? 1 : 0, dual_[i].dropped_checked ? 1 : 0};
+    const auto phi_dropped = dropped_use_pair(*dual_[i].schur);
+    c.integers[phi + "dropped"] = {phi_dropped[0], phi_dropped[1]};
     if (dual_[i].schur_factored) save_sparse(c, phi + "schur", dual_[i].schur_base);
   }
 }
@@ -1424,6 +1449,13 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     if (factored[1] != 0) {
       refactorise(key + "kkt", e.kkt_base, *e.kkt_solver, e.kkt_pattern, e.kkt_factored);
     }
+    // Whether their refinement reads L's dropped copy (absent from a checkpoint written before
+    // it could: all of L until the next factorisation checks its copy).
+    if (const auto it = c.integers.find(key + "dropped"); it != c.integers.end()) {
+      if (it->second.size() != 4) throw std::runtime_error(key + "dropped: expected 4 values");
+      set_dropped_use(*e.schur_solver, it->second[0], it->second[1]);
+      set_dropped_use(*e.kkt_solver, it->second[2], it->second[3]);
+    }
     DualWall<D>& w = dual_[i];
     const std::string phi = "solver.coupling_" + std::to_string(i) + ".";
     const auto& coupling = c.integer(phi + "factored", 4);
@@ -1437,12 +1469,10 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     }
     // Which copy of L CG reads (absent from a checkpoint written before there was a choice:
     // the dropped one).
-    w.use_dropped = true;
-    w.dropped_checked = true;
+    w.schur->set_dropped_use(SparseLdlt::DroppedUse::usable);
     if (const auto it = c.integers.find(phi + "dropped"); it != c.integers.end()) {
       if (it->second.size() != 2) throw std::runtime_error(phi + "dropped: expected 2 values");
-      w.use_dropped = it->second[0] != 0;
-      w.dropped_checked = it->second[1] != 0;
+      set_dropped_use(*w.schur, it->second[0], it->second[1]);
     }
   }
 }

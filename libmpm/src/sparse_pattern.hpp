@@ -588,6 +588,25 @@ void ldlt_solve(const SparseLdlt& solver, const Rhs& b, Rhs& x, std::vector<doub
 /// refine()'s relative tolerance (below).
 constexpr double kRefineTolerance = 1e-10;
 
+/// Decides, once per factorisation, whether solves against it that only precondition (once
+/// the matrix has moved) read L's dropped copy (SparseLdlt::dropped()): from an exact solve
+/// `exact` of b with the factorisation in hand, the copy's answer for b within kDroppedAnswer
+/// of it in `norm`. Where the matrix is near singular (the one-way floor's S, whose shift
+/// holds multipliers the active nodes cannot all satisfy) the entries left out can carry its
+/// small eigenvalues: that copy failed CG every step, and a failed solve factorises. Does
+/// nothing for a solver without the copy or already checked. `scratch` of b's shape.
+template <class Rhs, class Norm>
+void check_dropped(SparseLdlt& solver, const Rhs& b, const Rhs& exact, Rhs& scratch,
+                   std::vector<double>& work, const Norm& norm) {
+  constexpr double kDroppedAnswer = 0.1;
+  if (!solver.keeps_dropped() || solver.dropped_use() != SparseLdlt::DroppedUse::unchecked) return;
+  ldlt_solve(solver, b, scratch, work, LdltValues::dropped);
+  scratch -= exact;
+  solver.set_dropped_use(norm(scratch) <= kDroppedAnswer * norm(exact)
+                             ? SparseLdlt::DroppedUse::usable
+                             : SparseLdlt::DroppedUse::unusable);
+}
+
 /// The Euclidean norm: refine()'s measure of x and its updates unless the caller gives another
 /// (Enhanced's contact system weighs its impulses into velocities: unknowns of other units).
 struct EuclideanNorm {
@@ -737,16 +756,26 @@ bool conjugate_refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::s
 /// unless it is `pattern` (the hash of the analysed one's), and `refine` cleared. Returns
 /// false if m cannot be factorised. `base` keeps the matrix the solver's factorisation is of
 /// (a checkpoint saves it, so a resumed run refines against the same one). `passes` and
-/// `factorizations` count the work done (reported by the benchmarks). Allocates only to
-/// factorise (`w` is the caller's scratch).
+/// `factorizations` count the work done (reported by the benchmarks). For a solver that keeps
+/// L's dropped copy, the first exact solve with each factorisation checks the copy
+/// (check_dropped(), in `norm`), and refinement reads it where it passed: on Enhanced's floor
+/// benchmark the same passes and factorisations as with all of L (docs/performance.md,
+/// 2026-12-08). Allocates only to factorise (`w` is the caller's scratch).
 template <class Rhs, class Apply, class Form, class Norm = EuclideanNorm>
 bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
                    Eigen::SparseMatrix<double>& base, std::size_t& pattern, bool& refine,
                    const Rhs& b, Rhs& x, std::size_t& passes, std::size_t& factorizations,
                    SolveWork<Rhs>& w, double tolerance = kRefineTolerance, const Norm& norm = {}) {
-  ldlt_solve(solver, b, x, w.work);
-  if (!refine) return true;
-  const auto factor = [&](const Rhs& r, Rhs& out) { ldlt_solve(solver, r, out, w.work); };
+  if (!refine) {
+    ldlt_solve(solver, b, x, w.work);
+    check_dropped(solver, b, x, w.update, w.work, norm);
+    return true;
+  }
+  const LdltValues aged = solver.dropped_use() == SparseLdlt::DroppedUse::usable
+                              ? LdltValues::dropped
+                              : LdltValues::full;
+  ldlt_solve(solver, b, x, w.work, aged);
+  const auto factor = [&](const Rhs& r, Rhs& out) { ldlt_solve(solver, r, out, w.work, aged); };
   if (mpm::refine(b, x, apply, factor, passes, w.residual, w.update, 0.0, tolerance, norm)) {
     return true;
   }
@@ -761,6 +790,7 @@ bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
   refine = false;
   if (solver.info() != Eigen::Success) return false;
   ldlt_solve(solver, b, x, w.work);
+  check_dropped(solver, b, x, w.update, w.work, norm);
   return true;
 }
 

@@ -664,6 +664,75 @@ TEST(SparseSolve, RefinedSolveAcrossAPatternChange) {
   EXPECT_LE((far * x - b).norm(), 1e-12 * b.norm());
 }
 
+// A solver that keeps L's dropped copy (Enhanced's) checks it on the first exact solve with
+// each factorisation (check_dropped(): the copy's answer within 0.1 of the exact one), and
+// refined_solve() refines against an aged factorisation through the copy only where it passed:
+// as many passes (one more at most) as with all of L, and the same answer, since the residual
+// is formed in double. Where it failed, refinement reads all of L: the same operations as a
+// solver that keeps no copy, bit for bit.
+TEST(SparseSolve, RefinedSolveReadsTheDroppedCopyOnlyWhereItsCheckPassed) {
+  const Eigen::SparseMatrix<double> a = grid_spd(30, 3);
+  const Eigen::SparseMatrix<double> near = moved(a, 0.002);
+  const Block3 b = random_block(a.rows(), 53);
+  const Block3 reference = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>(near).solve(b);
+  // Factorises a, solves a x = b exactly (the check), overrides the verdict if `verdict` is
+  // given, then refines near x = b against a's factorisation; returns the passes.
+  auto refine_near = [&](LdltValues kept, SparseLdlt::DroppedUse& use, Block3& x,
+                         const SparseLdlt::DroppedUse* verdict = nullptr) {
+    SparseLdlt solver(kept);
+    Eigen::SparseMatrix<double> base;
+    std::size_t pattern = 0, passes = 0, factorizations = 0;
+    bool factored = false, refine = false;
+    SolveWork<Block3> work;
+    EXPECT_TRUE(
+        factorise_or_reuse(solver, a, base, pattern, factored, true, refine, factorizations));
+    EXPECT_EQ(solver.dropped_use(), SparseLdlt::DroppedUse::unchecked);
+    EXPECT_TRUE(
+        refined_solve(solver, a, base, pattern, refine, b, x, passes, factorizations, work));
+    use = solver.dropped_use();
+    if (verdict != nullptr) solver.set_dropped_use(*verdict);
+    EXPECT_TRUE(
+        factorise_or_reuse(solver, near, base, pattern, factored, true, refine, factorizations));
+    EXPECT_TRUE(refine);  // same pattern: the factorisation in hand
+    EXPECT_TRUE(
+        refined_solve(solver, near, base, pattern, refine, b, x, passes, factorizations, work));
+    EXPECT_EQ(factorizations, 1U);
+    EXPECT_LE((x - reference).norm(), 2e-10 * reference.norm());
+    return passes;
+  };
+  SparseLdlt::DroppedUse use{};
+  Block3 x_full, x_dropped, x_unusable;
+  const std::size_t passes_full = refine_near(LdltValues::full, use, x_full);
+  EXPECT_EQ(use, SparseLdlt::DroppedUse::unchecked);  // no copy to check
+  const std::size_t passes_dropped = refine_near(LdltValues::dropped, use, x_dropped);
+  EXPECT_EQ(use, SparseLdlt::DroppedUse::usable);
+  EXPECT_LE(passes_dropped, passes_full + 1);
+  EXPECT_NE((x_dropped - x_full).norm(), 0.0);  // another preconditioner, the same answer
+  std::printf("refinement passes: %zu through the dropped copy, %zu through all of L\n",
+              passes_dropped, passes_full);
+  const SparseLdlt::DroppedUse unusable = SparseLdlt::DroppedUse::unusable;
+  refine_near(LdltValues::dropped, use, x_unusable, &unusable);
+  EXPECT_EQ((x_unusable - x_full).norm(), 0.0);
+
+  // The check's rule: against an answer 20% off the exact one (the copy's within 1e-3 of
+  // it), the copy fails; once checked, a factorisation is not checked again.
+  SparseLdlt solver(LdltValues::dropped);
+  solver.compute(a);
+  std::vector<double> work;
+  Block3 exact, scratch;
+  ldlt_solve(solver, b, exact, work);
+  const Block3 off = 1.2 * exact;
+  check_dropped(solver, b, off, scratch, work, EuclideanNorm{});
+  EXPECT_EQ(solver.dropped_use(), SparseLdlt::DroppedUse::unusable);
+  solver.factorize(a);  // each factorisation is checked anew
+  EXPECT_EQ(solver.dropped_use(), SparseLdlt::DroppedUse::unchecked);
+  check_dropped(solver, b, exact, scratch, work, EuclideanNorm{});
+  EXPECT_EQ(solver.dropped_use(), SparseLdlt::DroppedUse::usable);
+  check_dropped(solver, b, off, scratch, work, EuclideanNorm{});
+  EXPECT_EQ(solver.dropped_use(), SparseLdlt::DroppedUse::usable);
+  EXPECT_THROW(solver.round_to_single(), std::logic_error);  // the dropped copy alone
+}
+
 TEST(SparseSolve, BlockSolveRefusesMoreThanThreeColumns) {
   const Eigen::SparseMatrix<double> a = random_spd(20, 4, 9);
   SparseLdlt solver;

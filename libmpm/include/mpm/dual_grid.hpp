@@ -96,16 +96,19 @@ enum class LdltValues {
 /// slower for it). Only a solver made with LdltValues::single keeps the copy (the Phi
 /// coupling's; Enhanced's, which refines by plain refinement, does not: its L has 1.33 M
 /// entries on the floor, and rounding cost refinement passes, docs/performance.md 2026-12-04).
-/// Such a solver also keeps L's dropped copy (LdltValues::dropped, made by factorize()), which
-/// the Phi coupling's CG reads since 2026-12-07: its passes against an aged factor are set by
-/// how far S has moved, not by L's small entries.
+/// A solver made with LdltValues::single or LdltValues::dropped keeps L's dropped copy
+/// (LdltValues::dropped, made by factorize()), which solves against an aged factor read once
+/// the first exact solve with the factorisation has found it close (check_dropped(),
+/// sparse_pattern.hpp): the Phi coupling's CG since 2026-12-07, Enhanced's refinement since
+/// 2026-12-08. Their passes are set by how far the matrix has moved, not by L's small entries.
 class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   using Base = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 
  public:
-  /// `kept`: LdltValues::single to keep L's single-precision copy and its dropped copy as well.
+  /// `kept`: LdltValues::single to keep L's single-precision copy and its dropped copy as well,
+  /// LdltValues::dropped for the dropped copy alone.
   explicit SparseLdlt(LdltValues kept = LdltValues::full)
-      : keeps_single_(kept == LdltValues::single) {}
+      : keeps_single_(kept == LdltValues::single), keeps_dropped_(kept != LdltValues::full) {}
   [[nodiscard]] const Eigen::VectorXd& diagonal() const { return m_diag; }
   [[nodiscard]] const SubtreeSplit& split() const { return split_; }
   [[nodiscard]] const ColumnRuns& runs() const { return runs_; }
@@ -135,6 +138,14 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     std::vector<float> value;
   };
   [[nodiscard]] const Dropped& dropped() const { return dropped_; }
+  [[nodiscard]] bool keeps_dropped() const { return keeps_dropped_; }
+  /// Whether solves against this factorisation once the matrix has moved (it only
+  /// preconditions then) read the dropped copy: unchecked from each factorisation until
+  /// check_dropped() (sparse_pattern.hpp) compares the copy's answer with an exact one;
+  /// checkpoints save it, so that a resumed run reads the same values.
+  enum class DroppedUse : std::uint8_t { unchecked, usable, unusable };
+  [[nodiscard]] DroppedUse dropped_use() const { return dropped_use_; }
+  void set_dropped_use(DroppedUse use) { dropped_use_ = use; }
   void compute(const Eigen::SparseMatrix<double>& a) {
     analyzePattern(a);
     factorize(a);
@@ -156,9 +167,10 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     // Sized here, in the step that factorises (a later step's rounding allocates nothing).
     if (keeps_single_) {
       single_.resize(static_cast<std::size_t>(matrixL().nestedExpression().nonZeros()));
-      if (info() == Eigen::Success) drop_small();
     }
+    if (keeps_dropped_ && info() == Eigen::Success) drop_small();
     single_ready_ = false;
+    dropped_use_ = DroppedUse::unchecked;
     numeric_seconds_ += since(start);
   }
   /// Wall-clock seconds spent so far in analyzePattern() (the fill-reducing ordering and the
@@ -176,15 +188,18 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     dropped_.outer.assign(n + 1, 0);
     dropped_.inner.clear();
     dropped_.value.clear();
+    root_.resize(n);  // |d_i|^1/2, one square root a row rather than two an entry
+    for (std::size_t i = 0; i < n; ++i) {
+      root_[i] = std::sqrt(std::abs(m_diag[static_cast<Eigen::Index>(i)]));
+    }
     for (std::size_t j = 0; j < n; ++j) {
-      const double dj = std::abs(m_diag[static_cast<Eigen::Index>(j)]);
+      const double root_j = root_[j];
       for (int p = l.outerIndexPtr()[j]; p < l.outerIndexPtr()[j + 1]; ++p) {
         const int i = l.innerIndexPtr()[p];
         if (i <= static_cast<int>(j)) continue;
-        const double di = std::abs(m_diag[i]);
         const double v = l.valuePtr()[p];
         // Kept unless small against row i's scale (a zero pivot keeps its row whole).
-        if (!(std::abs(v) * std::sqrt(dj) < kDropBelow * std::sqrt(di))) {
+        if (!(std::abs(v) * root_j < kDropBelow * root_[static_cast<std::size_t>(i)])) {
           dropped_.inner.push_back(i);
           dropped_.value.push_back(static_cast<float>(v));
         }
@@ -196,7 +211,10 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   ColumnRuns runs_;
   Dropped dropped_;
   std::vector<float> single_;
+  std::vector<double> root_;
   bool keeps_single_ = false;
+  bool keeps_dropped_ = false;
+  DroppedUse dropped_use_ = DroppedUse::unchecked;
   bool split_stale_ = true;
   bool single_ready_ = false;
   double analysis_seconds_ = 0.0, numeric_seconds_ = 0.0;
@@ -321,8 +339,10 @@ struct EnhancedState {
   std::vector<Vec<D>> normal;              ///< unit normal into the material, per multiplier
   std::vector<int> part;                   ///< part index, per multiplier
   Eigen::VectorXd integral;                ///< sum of the kept R^A entries (= integral S_mu)
-  std::unique_ptr<SparseLdlt> schur_solver = std::make_unique<SparseLdlt>();
-  std::unique_ptr<SparseLdlt> kkt_solver = std::make_unique<SparseLdlt>();
+  /// Both keep L's dropped copy, which their refinement reads once it is checked
+  /// (refined_solve(), sparse_pattern.hpp).
+  std::unique_ptr<SparseLdlt> schur_solver = std::make_unique<SparseLdlt>(LdltValues::dropped);
+  std::unique_ptr<SparseLdlt> kkt_solver = std::make_unique<SparseLdlt>(LdltValues::dropped);
   std::size_t dropped_dependent = 0;  ///< alpha nodes dropped this step (near-dependent bases)
   std::size_t dropped_covered = 0;    ///< Gamma nodes the standard grid alone covers this step
   double min_mass_ratio = 1.0;        ///< smallest K_SS / m^alpha_S kept this step
@@ -530,11 +550,6 @@ struct DualWall {
   std::size_t factored_structure = 0;  ///< active multipliers' hash when `schur_base` was formed
   bool schur_factored = false;         ///< `schur` holds a valid factorisation (maybe older)
   bool schur_refine = false;           ///< this step's S is solved by refinement
-  /// Whether CG against the factorisation in hand reads L's dropped copy (SparseLdlt::
-  /// dropped()) or all of it in single precision: decided by the first solve with a new
-  /// factorisation, which tries the copy on its own right-hand side (layer_couple()); checked
-  /// tells that it was. A checkpoint saves the choice.
-  bool use_dropped = true, dropped_checked = true;
   /// After a refinement that failed, steps to factorise without trying (refine_wait), and how
   /// many the next failure waits (0 after a success, then 1, doubled per failure up to 64).
   int refine_wait = 0, refine_backoff = 0;
