@@ -4,6 +4,10 @@
 #include <string>
 #include <utility>
 
+#ifdef __GLIBC__
+#include <malloc.h>
+#endif
+
 #include <tbb/global_control.h>
 #include <CLI/CLI.hpp>
 
@@ -12,6 +16,16 @@
 #include "mpm/scene.hpp"
 
 int main(int argc, char** argv) {
+#ifdef __GLIBC__
+  // Freed memory stays in the heap for the next allocation. The couplings allocate and free
+  // blocks of megabytes at each factorisation (Eigen's permuted copy of the matrix; Enhanced's
+  // K, W and contact system, formed to be factorised): glibc returned them to the kernel and
+  // took the page faults to map them again, 238,578 of them in 300 steps of the Enhanced
+  // floor benchmark, 82,180 with this (61.8 -> 50.5 ms a step; docs/performance.md,
+  // 2026-12-08). Blocks of 32 MiB or more are still mapped apart.
+  mallopt(M_MMAP_THRESHOLD, 32 << 20);
+  mallopt(M_TRIM_THRESHOLD, 1 << 30);
+#endif
   CLI::App app{"Material Point Method with dual-grid bounding surfaces", "mpm"};
   app.set_version_flag("--version", std::string("mpm ") + MPM_VERSION);
   app.require_subcommand(1);
