@@ -665,30 +665,114 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         signature[c] = 4 * e.multipliers[static_cast<std::size_t>(rows[c].first)] +
                        static_cast<int>(state[rows[c].first]);
       }
-      if (!e.kkt_ready || signature != e.kkt_signature) {
+      // The factorisation in hand bordered for this step's unknowns (BorderedFactor): its
+      // velocities matched to these by node, its rows by signature (a stuck multiplier's D rows
+      // in their order), at most kBorderedRows of them gone or new (each costs a solve with the
+      // factorisation to set up, again in each step the rows differ: the floor benchmark's
+      // factorisation costs about a hundred), and at most kBorderedBudget summed over the
+      // borderings of one factorisation (rows that came or went for good are bordered again each
+      // step until it factorises).
+      const auto prepare_bordered = [&]() {
+        constexpr std::size_t kBorderedRows = 64, kBorderedBudget = 128;
+        if (e.bordered_factor != e.kkt_solver->factorizations()) {
+          e.bordered_factor = e.kkt_solver->factorizations();
+          e.bordered_rows = 0;
+        }
+        const std::vector<int>& factored = e.kkt_signature;
+        auto key_of = [](const std::vector<int>& rows_signature, std::size_t c, int& run) {
+          run = c > 0 && rows_signature[c - 1] == rows_signature[c] ? run + 1 : 0;
+          return static_cast<std::int64_t>(rows_signature[c]) * 4 + run;
+        };
+        auto& old_of = e.bordered_old_of;
+        old_of.resize(static_cast<std::size_t>(nv + nc));
+        std::size_t added = 0;
+        // v^alpha's unknowns by node (both lists of nodes increase).
+        const std::vector<int>& factored_nodes = e.kkt_alpha_cols;
+        for (Eigen::Index c = 0; c < ns; ++c) {
+          const int node = e.alpha_cols[static_cast<std::size_t>(c)];
+          const auto at = std::lower_bound(factored_nodes.begin(), factored_nodes.end(), node);
+          const bool found = at != factored_nodes.end() && *at == node;
+          const auto old_column = static_cast<int>(at - factored_nodes.begin());
+          for (int d = 0; d < D; ++d) {
+            old_of[static_cast<std::size_t>(c * D + d)] = found ? old_column * D + d : -1;
+          }
+          if (!found) added += D;
+        }
+        const auto factored_nv = static_cast<int>(factored_nodes.size()) * D;
+        auto& keys = e.bordered_keys;
+        keys.clear();
+        int run = 0;
+        for (std::size_t c = 0; c < factored.size(); ++c) {
+          keys.emplace_back(key_of(factored, c, run), factored_nv + static_cast<int>(c));
+        }
+        std::sort(keys.begin(), keys.end());
+        run = 0;
+        for (std::size_t c = 0; c < signature.size(); ++c) {
+          const std::pair<std::int64_t, int> key{key_of(signature, c, run), -1};
+          const auto at = std::lower_bound(keys.begin(), keys.end(), key);
+          const bool found = at != keys.end() && at->first == key.first;
+          old_of[static_cast<std::size_t>(nv) + c] = found ? at->second : -1;
+          if (!found) ++added;
+        }
+        const std::size_t removed = static_cast<std::size_t>(e.kkt_solver->rows()) -
+                                    (static_cast<std::size_t>(nv + nc) - added);
+        if (added + removed > kBorderedRows ||
+            e.bordered_rows + added + removed > kBorderedBudget) {
+          return false;
+        }
+        e.bordered_rows += added + removed;
+        Eigen::VectorXd& unit = e.bordered_unit;
+        unit.setZero(nv + nc);
+        const auto column = [&](int j, Eigen::VectorXd& out) {
+          unit[j] = 1.0;
+          apply_kkt(unit, out);
+          unit[j] = 0.0;
+        };
+        const LdltValues values = e.kkt_solver->dropped_use() == SparseLdlt::DroppedUse::usable
+                                      ? LdltValues::dropped
+                                      : LdltValues::full;
+        return e.bordered.prepare(*e.kkt_solver, values, old_of, column);
+      };
+      // Forms this step's matrix (if it is not) and factorises it unless its pattern and rows
+      // are the factorised one's (`reusable`): the factorisation in hand is for these unknowns
+      // from then on.
+      const auto factorise = [&](bool reusable) {
+        if (!e.kkt_formed) form_kkt();
+        e.kkt_bordered = false;
+        if (!factorise_or_reuse(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_pattern,
+                                e.kkt_factored, reusable, e.kkt_refine, e.factorizations)) {
+          return false;
+        }
+        e.kkt_alpha_cols = e.alpha_cols;
+        e.kkt_signature = signature;
+        return true;
+      };
+      if (!e.kkt_ready || signature != e.prepared_signature) {
         // The same unknowns as the factorisation in hand (the same held directions and the same
         // enhancement nodes: contact that has not changed since an earlier step): the masses
         // moved a little, so that factorisation is a close preconditioner and a few refinement
         // passes solve the new matrix (to 1e-10: refine()), which they apply by blocks: the
         // matrix is not formed. Its pattern may differ from the factorised one's (the cross mass
         // gains and loses (I, S) pairs as particles cross cells, nearly every step on the floor
-        // benchmark); refinement that fails factorises this step's matrix. Otherwise the matrix
-        // is formed, and factorised unless its pattern is the factorised one's.
+        // benchmark); refinement that fails factorises this step's matrix. With a few held rows
+        // or enhancement nodes more or fewer (multipliers coming into contact or leaving it,
+        // nodes crossing the mass threshold), the factorisation bordered for them
+        // (BorderedFactor) preconditions as well. Otherwise the matrix is formed, and
+        // factorised unless its pattern is the factorised one's.
         const bool same_rows = signature == e.kkt_signature;
+        const bool same_columns = e.alpha_cols == e.kkt_alpha_cols;
         e.kkt_formed = false;
-        if (e.kkt_factored && same_rows && e.alpha_cols == e.kkt_alpha_cols) {
+        e.kkt_bordered = false;
+        if (e.kkt_factored && same_rows && same_columns) {
           e.kkt_refine = true;
-        } else {
-          form_kkt();
-          if (!factorise_or_reuse(*e.kkt_solver, e.kkt_matrix, e.kkt_base, e.kkt_pattern,
-                                  e.kkt_factored, same_rows, e.kkt_refine, e.factorizations)) {
-            return false;
-          }
-          // (Reused for the same pattern or factorised anew: for these unknowns from now on.)
-          e.kkt_alpha_cols = e.alpha_cols;
+        } else if (e.kkt_factored && prepare_bordered()) {
+          e.kkt_refine = true;
+          e.kkt_bordered = true;
+        } else if (!factorise(same_rows)) {
+          return false;
         }
         e.kkt_ready = true;
-        e.kkt_signature = signature;
+        e.prepared_signature = signature;
       }
       Eigen::VectorXd& rhs = e.rhs;
       rhs.resize(nv + nc);
@@ -736,7 +820,21 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
         }
         return std::sqrt(sum);
       };
-      if (!refined_solve(*e.kkt_solver, apply_kkt, formed, e.kkt_base, e.kkt_pattern, e.kkt_refine,
+      if (e.kkt_bordered) {
+        // Refinement against the bordered factorisation; unconverged, this step's matrix is
+        // factorised and solved.
+        const auto bordered_solve = [&](const Eigen::VectorXd& r, Eigen::VectorXd& out) {
+          e.bordered.solve(r, out);
+        };
+        e.bordered.solve(rhs, x);
+        if (!refine(rhs, x, apply_kkt, bordered_solve, e.refinements, e.kkt_work.residual,
+                    e.kkt_work.update, 0.0, scene_.coupling_tolerance, as_velocities) &&
+            !factorise(false)) {
+          return false;
+        }
+      }
+      if (!e.kkt_bordered &&
+          !refined_solve(*e.kkt_solver, apply_kkt, formed, e.kkt_base, e.kkt_pattern, e.kkt_refine,
                          rhs, x, e.refinements, e.factorizations, e.kkt_work,
                          scene_.coupling_tolerance, as_velocities)) {
         return false;

@@ -1380,6 +1380,9 @@ void Solver<D>::save_state(Checkpoint& c) const {
     const auto kkt_dropped = dropped_use_pair(*e.kkt_solver);
     c.integers[key + "dropped"] = {schur_dropped[0], schur_dropped[1], kkt_dropped[0],
                                    kkt_dropped[1]};
+    const bool bordered = e.bordered_factor == e.kkt_solver->factorizations();
+    c.integers[key + "bordered_rows"] = {bordered ? static_cast<std::int64_t>(e.bordered_rows)
+                                                  : std::int64_t{0}};
     c.integers[key + "kkt_signature"].assign(e.kkt_signature.begin(), e.kkt_signature.end());
     c.integers[key + "kkt_alpha_cols"].assign(e.kkt_alpha_cols.begin(), e.kkt_alpha_cols.end());
     if (e.schur_factored) save_sparse(c, key + "schur", e.schur_base);
@@ -1455,6 +1458,15 @@ void Solver<D>::restore_state(const Checkpoint& c) {
       if (it->second.size() != 4) throw std::runtime_error(key + "dropped: expected 4 values");
       set_dropped_use(*e.schur_solver, it->second[0], it->second[1]);
       set_dropped_use(*e.kkt_solver, it->second[2], it->second[3]);
+    }
+    // The rows bordered so far on the factorisation in hand (absent: none).
+    e.bordered_factor = e.kkt_solver->factorizations();
+    e.bordered_rows = 0;
+    if (const auto it = c.integers.find(key + "bordered_rows"); it != c.integers.end()) {
+      if (it->second.size() != 1 || it->second[0] < 0) {
+        throw std::runtime_error(key + "bordered_rows: expected 1 count");
+      }
+      e.bordered_rows = static_cast<std::size_t>(it->second[0]);
     }
     DualWall<D>& w = dual_[i];
     const std::string phi = "solver.coupling_" + std::to_string(i) + ".";

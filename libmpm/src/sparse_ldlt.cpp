@@ -1,5 +1,6 @@
 // The split of an LDL^T factor's elimination tree that lets ldlt_solve() (sparse_pattern.hpp)
-// run its triangular solves on two threads (SubtreeSplit, mpm/dual_grid.hpp).
+// run its triangular solves on two threads (SubtreeSplit, mpm/dual_grid.hpp), and the bordered
+// inverse of a factorisation whose unknowns changed a little (BorderedFactor).
 
 #include <algorithm>
 #include <array>
@@ -9,6 +10,7 @@
 #include <vector>
 
 #include "mpm/dual_grid.hpp"
+#include "sparse_pattern.hpp"
 
 namespace mpm {
 
@@ -178,6 +180,111 @@ ColumnRuns column_runs(const Eigen::SparseMatrix<double>& l, const SubtreeSplit&
     group(split.top, runs.top);
   }
   return runs;
+}
+
+bool BorderedFactor::prepare(const SparseLdlt& solver, LdltValues values,
+                             const std::vector<int>& old_of,
+                             const std::function<void(int, Eigen::VectorXd&)>& column) {
+  solver_ = &solver;
+  values_ = values;
+  old_of_ = old_of;
+  const Eigen::Index old_size = solver.rows();
+  const auto size = static_cast<Eigen::Index>(old_of.size());
+  std::vector<char> kept(static_cast<std::size_t>(old_size), 0);
+  added_.clear();
+  for (Eigen::Index i = 0; i < size; ++i) {
+    const int o = old_of[static_cast<std::size_t>(i)];
+    if (o < 0) {
+      added_.push_back(static_cast<int>(i));
+    } else {
+      kept[static_cast<std::size_t>(o)] = 1;
+    }
+  }
+  removed_.clear();
+  for (Eigen::Index o = 0; o < old_size; ++o) {
+    if (kept[static_cast<std::size_t>(o)] == 0) removed_.push_back(static_cast<int>(o));
+  }
+  const auto r = static_cast<Eigen::Index>(removed_.size());
+  const auto q = static_cast<Eigen::Index>(added_.size());
+  // 1 / rcond below this: A~ (or F_KK) singular to working precision.
+  constexpr double kSingular = 1e12;
+  g_.resize(old_size, r);
+  s_.resize(old_size);
+  for (Eigen::Index c = 0; c < r; ++c) {
+    s_.setZero();
+    s_[removed_[static_cast<std::size_t>(c)]] = 1.0;
+    ldlt_solve(*solver_, s_, t_, work_, values_);
+    g_.col(c) = t_;
+  }
+  if (r > 0) {
+    Eigen::MatrixXd h(r, r);
+    for (Eigen::Index c = 0; c < r; ++c) h.row(c) = g_.row(removed_[static_cast<std::size_t>(c)]);
+    h_.compute(h);
+    if (!(h_.rcond() * kSingular > 1.0)) return false;
+  }
+  tau_.resize(r);
+  solved_tau_.resize(r);
+  xq_.resize(q);
+  solved_xq_.resize(q);
+  b_.resize(old_size, q);
+  Eigen::MatrixXd c_block(q, q);
+  y_.resize(old_size, q);
+  Eigen::VectorXd col(size);
+  for (Eigen::Index a = 0; a < q; ++a) {
+    column(added_[static_cast<std::size_t>(a)], col);
+    b_.col(a).setZero();
+    for (Eigen::Index i = 0; i < size; ++i) {
+      const int o = old_of[static_cast<std::size_t>(i)];
+      if (o >= 0) b_(o, a) = col[i];
+    }
+    for (Eigen::Index a2 = 0; a2 < q; ++a2)
+      c_block(a2, a) = col[added_[static_cast<std::size_t>(a2)]];
+    s_ = b_.col(a);
+    reduced_solve();
+    y_.col(a) = t_;
+  }
+  if (q > 0) {
+    z_.compute(c_block - b_.transpose() * y_);
+    if (!(z_.rcond() * kSingular > 1.0)) return false;
+  }
+  return true;
+}
+
+void BorderedFactor::solve(const Eigen::VectorXd& y, Eigen::VectorXd& x) {
+  const auto size = static_cast<Eigen::Index>(old_of_.size());
+  s_.setZero();
+  for (Eigen::Index i = 0; i < size; ++i) {
+    const int o = old_of_[static_cast<std::size_t>(i)];
+    if (o >= 0) s_[o] = y[i];
+  }
+  reduced_solve();
+  x.resize(size);
+  if (!added_.empty()) {
+    for (std::size_t a = 0; a < added_.size(); ++a) {
+      xq_[static_cast<Eigen::Index>(a)] = y[added_[a]];
+    }
+    xq_.noalias() -= b_.transpose() * t_;
+    solved_xq_ = z_.solve(xq_);
+    t_.noalias() -= y_ * solved_xq_;
+    for (std::size_t a = 0; a < added_.size(); ++a) {
+      x[added_[a]] = solved_xq_[static_cast<Eigen::Index>(a)];
+    }
+  }
+  for (Eigen::Index i = 0; i < size; ++i) {
+    const int o = old_of_[static_cast<std::size_t>(i)];
+    if (o >= 0) x[i] = t_[o];
+  }
+}
+
+// t_ = F_KK^-1 s_ (s_ zero on the removed unknowns; t_ comes out zero on them, to round-off).
+void BorderedFactor::reduced_solve() {
+  ldlt_solve(*solver_, s_, t_, work_, values_);
+  if (removed_.empty()) return;
+  for (std::size_t c = 0; c < removed_.size(); ++c) {
+    tau_[static_cast<Eigen::Index>(c)] = t_[removed_[c]];
+  }
+  solved_tau_ = h_.solve(tau_);
+  t_.noalias() -= g_ * solved_tau_;
 }
 
 }  // namespace mpm

@@ -733,6 +733,140 @@ TEST(SparseSolve, RefinedSolveReadsTheDroppedCopyOnlyWhereItsCheckPassed) {
   EXPECT_THROW(solver.round_to_single(), std::logic_error);  // the dropped copy alone
 }
 
+/// A contact system as Enhanced's: `velocity` (SPD) for the velocity unknowns, then one row per
+/// entry of `held` (ids into 30 possible rows, each coupled to a few velocity unknowns and to
+/// its neighbouring rows): [velocity, -W; -W^T, -S], quasi-definite.
+Eigen::SparseMatrix<double> contact_system(const Eigen::SparseMatrix<double>& velocity,
+                                           const std::vector<int>& held) {
+  const Eigen::Index nv = velocity.rows();
+  const auto nc = static_cast<Eigen::Index>(held.size());
+  std::vector<Eigen::Triplet<double>> t;
+  for (Eigen::Index c = 0; c < velocity.outerSize(); ++c) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(velocity, c); it; ++it) {
+      t.emplace_back(it.row(), it.col(), it.value());
+    }
+  }
+  for (Eigen::Index c = 0; c < nc; ++c) {
+    const int id = held[static_cast<std::size_t>(c)];
+    for (int k = 0; k < 4; ++k) {  // W: four velocity unknowns per row
+      const auto v = static_cast<Eigen::Index>((id * 37 + k * 11) % nv);
+      const double w = 0.3 + 0.1 * k;
+      t.emplace_back(v, nv + c, -w);
+      t.emplace_back(nv + c, v, -w);
+    }
+    for (Eigen::Index c2 = 0; c2 < nc; ++c2) {  // S: rows whose ids are neighbours couple
+      const int id2 = held[static_cast<std::size_t>(c2)];
+      if (id2 == id) t.emplace_back(nv + c, nv + c, -1.0);
+      if (std::abs(id2 - id) == 1) t.emplace_back(nv + c, nv + c2, -0.2);
+    }
+  }
+  Eigen::SparseMatrix<double> m(nv + nc, nv + nc);
+  m.setFromTriplets(t.begin(), t.end());
+  return m;
+}
+
+// BorderedFactor inverts, through the factorisation of an earlier contact system, one with a
+// few rows gone and a few new (in another order): exactly where the kept block is the
+// factorised one's, and as a preconditioner of refinement as good as the factorisation itself
+// where that block has moved (a drift of the masses), since the rest is exact.
+TEST(SparseSolve, BorderedFactorSolvesAfterRowsComeAndGo) {
+  const Eigen::SparseMatrix<double> velocity = grid_spd(12, 2);
+  const Eigen::Index nv = velocity.rows();
+  std::vector<int> old_rows(20);
+  for (int c = 0; c < 20; ++c) old_rows[static_cast<std::size_t>(c)] = c;
+  // Rows 3, 11 and 12 gone, 20, 21 and 25 new (and 25 listed before 14).
+  const std::vector<int> new_rows = {0,  1,  2,  4,  5,  6,  7,  8,  9,  10,
+                                     13, 25, 14, 15, 16, 17, 18, 19, 20, 21};
+  std::vector<int> old_of(static_cast<std::size_t>(nv) + new_rows.size(), -1);
+  for (Eigen::Index i = 0; i < nv; ++i) old_of[static_cast<std::size_t>(i)] = static_cast<int>(i);
+  for (std::size_t c = 0; c < new_rows.size(); ++c) {
+    const auto at = std::find(old_rows.begin(), old_rows.end(), new_rows[c]);
+    if (at != old_rows.end()) {
+      old_of[static_cast<std::size_t>(nv) + c] = static_cast<int>(nv + (at - old_rows.begin()));
+    }
+  }
+  const Eigen::SparseMatrix<double> old_matrix = contact_system(velocity, old_rows);
+  SparseLdlt solver(LdltValues::dropped);
+  solver.compute(old_matrix);
+  ASSERT_EQ(solver.info(), Eigen::Success);
+  std::mt19937 rng(61);
+  std::uniform_real_distribution<double> value(-1.0, 1.0);
+  Eigen::VectorXd b(static_cast<Eigen::Index>(old_of.size()));
+  for (Eigen::Index i = 0; i < b.size(); ++i) b[i] = value(rng);
+
+  // Unmoved: exact.
+  const Eigen::SparseMatrix<double> same = contact_system(velocity, new_rows);
+  auto column_of = [](const Eigen::SparseMatrix<double>& m) {
+    return [&m](int j, Eigen::VectorXd& out) { out = Eigen::VectorXd(m.col(j)); };
+  };
+  BorderedFactor bordered;
+  ASSERT_TRUE(bordered.prepare(solver, LdltValues::full, old_of, column_of(same)));
+  EXPECT_EQ(bordered.removed(), 3U);
+  EXPECT_EQ(bordered.added(), 3U);
+  Eigen::VectorXd x;
+  bordered.solve(b, x);
+  const Eigen::VectorXd exact = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>(same).solve(b);
+  EXPECT_LE((x - exact).norm(), 1e-12 * exact.norm());
+
+  // Moved (the velocity block's diagonal by 0.2%): refinement against the bordered factor, in
+  // no more passes than against a factorisation of the old rows for the old rows' moved matrix.
+  const Eigen::SparseMatrix<double> near = contact_system(moved(velocity, 0.002), new_rows);
+  ASSERT_TRUE(bordered.prepare(solver, LdltValues::full, old_of, column_of(near)));
+  const auto product = [&](const Eigen::VectorXd& y, Eigen::VectorXd& out) {
+    out.noalias() = near * y;
+  };
+  const auto precondition = [&](const Eigen::VectorXd& r, Eigen::VectorXd& out) {
+    bordered.solve(r, out);
+  };
+  Eigen::VectorXd residual, update;
+  std::size_t passes = 0;
+  bordered.solve(b, x);
+  ASSERT_TRUE(refine(b, x, product, precondition, passes, residual, update));
+  const Eigen::VectorXd near_exact =
+      Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>(near).solve(b);
+  EXPECT_LE((x - near_exact).norm(), 1e-9 * near_exact.norm());
+  const Eigen::SparseMatrix<double> old_near = contact_system(moved(velocity, 0.002), old_rows);
+  const auto old_product = [&](const Eigen::VectorXd& y, Eigen::VectorXd& out) {
+    out.noalias() = old_near * y;
+  };
+  std::vector<double> work;
+  const auto old_solve = [&](const Eigen::VectorXd& r, Eigen::VectorXd& out) {
+    ldlt_solve(solver, r, out, work);
+  };
+  const Eigen::VectorXd b_old = b.head(old_matrix.rows());
+  Eigen::VectorXd x_old;
+  std::size_t passes_old = 0;
+  old_solve(b_old, x_old);
+  ASSERT_TRUE(refine(b_old, x_old, old_product, old_solve, passes_old, residual, update));
+  EXPECT_LE(passes, passes_old + 1);
+  std::printf("bordered: %zu passes (the old rows' own: %zu)\n", passes, passes_old);
+
+  // Through the dropped copy too (each solve with F reads it).
+  ASSERT_TRUE(bordered.prepare(solver, LdltValues::dropped, old_of, column_of(near)));
+  passes = 0;
+  bordered.solve(b, x);
+  ASSERT_TRUE(refine(b, x, product, precondition, passes, residual, update));
+  EXPECT_LE((x - near_exact).norm(), 1e-9 * near_exact.norm());
+
+  // Rows only gone, and rows only new.
+  for (const auto& rows :
+       {std::vector<int>{0, 1, 2, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19},
+        std::vector<int>{0,  1,  2,  3,  4,  5,  6,  7,  8,  9,  10,
+                         11, 12, 13, 14, 15, 16, 17, 18, 19, 22, 23}}) {
+    std::vector<int> map(static_cast<std::size_t>(nv) + rows.size(), -1);
+    for (Eigen::Index i = 0; i < nv; ++i) map[static_cast<std::size_t>(i)] = static_cast<int>(i);
+    for (std::size_t c = 0; c < rows.size(); ++c) {
+      if (rows[c] < 20) map[static_cast<std::size_t>(nv) + c] = static_cast<int>(nv + rows[c]);
+    }
+    const Eigen::SparseMatrix<double> m = contact_system(velocity, rows);
+    ASSERT_TRUE(bordered.prepare(solver, LdltValues::full, map, column_of(m)));
+    const Eigen::VectorXd rhs = Eigen::VectorXd::Ones(m.rows());
+    bordered.solve(rhs, x);
+    const Eigen::VectorXd answer = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>(m).solve(rhs);
+    EXPECT_LE((x - answer).norm(), 1e-12 * answer.norm());
+  }
+}
+
 TEST(SparseSolve, BlockSolveRefusesMoreThanThreeColumns) {
   const Eigen::SparseMatrix<double> a = random_spd(20, 4, 9);
   SparseLdlt solver;

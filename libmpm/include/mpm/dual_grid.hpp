@@ -3,15 +3,18 @@
 // arrays, its Gamma nodes with their wall frames, and the multipliers that tie it to the standard
 // grid, on Phi (Blending) or on Gamma (Enhanced velocity field).
 
+#include <Eigen/LU>
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "mpm/boundary_package.hpp"
@@ -171,11 +174,14 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     if (keeps_dropped_ && info() == Eigen::Success) drop_small();
     single_ready_ = false;
     dropped_use_ = DroppedUse::unchecked;
+    ++factorizations_;
     numeric_seconds_ += since(start);
   }
   /// Wall-clock seconds spent so far in analyzePattern() (the fill-reducing ordering and the
   /// elimination tree) and in factorize() (the numeric factorisation and the solves' split).
   [[nodiscard]] double analysis_seconds() const { return analysis_seconds_; }
+  /// factorize() calls so far: tells one factorisation from the next.
+  [[nodiscard]] std::size_t factorizations() const { return factorizations_; }
   [[nodiscard]] double numeric_seconds() const { return numeric_seconds_; }
 
  private:
@@ -218,6 +224,47 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   bool split_stale_ = true;
   bool single_ready_ = false;
   double analysis_seconds_ = 0.0, numeric_seconds_ = 0.0;
+  std::size_t factorizations_ = 0;
+};
+
+/// The inverse, through a factorisation F of an earlier matrix, of a matrix whose unknowns are
+/// F's but for a few: some of F's unknowns gone and a few new ones (Enhanced's contact system
+/// when a few multipliers come into contact or leave it: the floor benchmark's changes held 1 to
+/// 8 of its 1,560 rows, and each factorised anew, about 100 ms, where the solves against the
+/// factorisation in hand take about 1). With K the unknowns kept and Q the new ones, the matrix
+///
+///   A~ = [ F_KK  B ]      B, C: the new matrix's columns of Q (its rows of K, and of Q),
+///        [ B^T   C ]
+///
+/// is inverted exactly: F_KK^-1 y as the solve of F x = y + E_R t with x_R = 0 for the gone
+/// unknowns R (t = -(F^-1)_RR^-1 (F^-1 y)_R, through G = F^-1 E_R), then by blocks through the
+/// Schur complement Z = C - B^T F_KK^-1 B. So A~ differs from the new matrix where F differs
+/// from its own (the masses' drift since F was factorised), and refinement against A~^-1
+/// converges as it would against F with unchanged unknowns. Setting up takes |R| + |Q| solves
+/// with F and |Q| columns of the new matrix; each solve then one with F and dense products of
+/// |R| + |Q| columns. Allocates only in prepare().
+class BorderedFactor {
+ public:
+  /// `old_of[i]`: F's unknown that the new matrix's unknown i is, or -1 for a new one (each of
+  /// F's at most once); `column(j, out)` sets `out` to the new matrix's column j (its size);
+  /// `values`: which values of L F's solves read (ldlt_solve()). Returns false where A~ is
+  /// singular to working precision (the caller factorises the new matrix instead).
+  bool prepare(const SparseLdlt& solver, LdltValues values, const std::vector<int>& old_of,
+               const std::function<void(int, Eigen::VectorXd&)>& column);
+  /// x = A~^-1 y (the new matrix's unknowns).
+  void solve(const Eigen::VectorXd& y, Eigen::VectorXd& x);
+  [[nodiscard]] std::size_t removed() const { return removed_.size(); }
+  [[nodiscard]] std::size_t added() const { return added_.size(); }
+
+ private:
+  void reduced_solve();
+  const SparseLdlt* solver_ = nullptr;
+  LdltValues values_ = LdltValues::full;
+  std::vector<int> old_of_, removed_, added_;
+  Eigen::MatrixXd g_, b_, y_;  ///< F^-1 E_R; B and F_KK^-1 B in F's unknowns
+  Eigen::PartialPivLU<Eigen::MatrixXd> h_, z_;
+  Eigen::VectorXd s_, t_, tau_, solved_tau_, xq_, solved_xq_;
+  std::vector<double> work_;
 };
 
 /// Scratch of product_into() (sparse_pattern.hpp), kept between calls, with the pattern of
@@ -350,8 +397,24 @@ struct EnhancedState {
   /// not settled after the 30 passes allowed (the last pass's states then stand), and the times
   /// a multiplier released twice in a step was kept released though its gap closed.
   std::size_t active_set_passes = 0, unsettled_steps = 0, kept_released = 0;
-  bool kkt_ready = false;          ///< kkt_solver holds this step's matrix for kkt_signature
-  std::vector<int> kkt_signature;  ///< 4 * multiplier + contact state, per held row
+  /// This step's contact system is prepared for the held rows `prepared_signature`: solved by
+  /// refinement against the factorisation in hand (kkt_refine), through `bordered` where its
+  /// rows are not the factorised ones (kkt_bordered), or factorised.
+  bool kkt_ready = false;
+  std::vector<int> prepared_signature;
+  /// The held rows of the factorisation in hand: 4 * multiplier + contact state, per row.
+  std::vector<int> kkt_signature;
+  /// The factorisation in hand bordered for rows that came or went since (BorderedFactor), its
+  /// map of unknowns, and the rows' keys (signature, and which of a multiplier's rows) sorted.
+  BorderedFactor bordered;
+  bool kkt_bordered = false;
+  /// Rows gone or new summed over the borderings of the factorisation in hand (the one
+  /// kkt_solver->factorizations() called `bordered_factor`): past kBorderedBudget the next
+  /// change factorises (enhanced_solve()). A checkpoint saves it.
+  std::size_t bordered_rows = 0, bordered_factor = 0;
+  std::vector<int> bordered_old_of;
+  std::vector<std::pair<std::int64_t, int>> bordered_keys;
+  Eigen::VectorXd bordered_unit;
   std::size_t kkt_pattern = 0;     ///< sparsity hash of the last analysed matrix
   std::size_t factorizations = 0;  ///< contact-system factorisations so far (for benchmarks)
   std::size_t refinements = 0;     ///< refinement passes against an earlier factorisation
@@ -370,7 +433,7 @@ struct EnhancedState {
   /// factorisation in hand while its unknowns are this step's: the held rows (kkt_signature)
   /// and these enhancement nodes (alpha_cols when it was factorised; saved in a checkpoint).
   std::vector<int> kkt_alpha_cols;
-  bool kkt_formed = false;  ///< kkt_matrix is this step's, for kkt_signature
+  bool kkt_formed = false;  ///< kkt_matrix is this step's, for prepared_signature
   double kkt_shift = 0.0;   ///< the held rows' diagonal shift (relative 1e-10 of S_A's largest)
   /// The matrices the two factorisations in hand are of (maybe an earlier step's): saved in a
   /// checkpoint and factorised again on restore, so a resumed run refines against the very
