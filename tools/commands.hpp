@@ -55,7 +55,8 @@ struct BenchArgs {
 
 struct PerfArgs {
   int cells = 32;  ///< the block's cells per side (8 particles per cell)
-  int steps = 20;  ///< timed steps per round (after 5 settling steps)
+  int steps = 20;  ///< timed steps per round (after `settle` settling steps)
+  int settle = 5;  ///< steps each scene takes before its timed rounds (the scaling runs: 1)
   /// Rounds per scene, interleaved with the other scenes' (median); unset: 5, or 1 with `smoke`.
   std::optional<int> rounds;
   double yardstick = 0.0;  ///< > 0: the yardstick's M particle-steps/s, same session

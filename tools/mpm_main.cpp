@@ -22,7 +22,7 @@ int main(int argc, char** argv) {
   // K, W and contact system, formed to be factorised): glibc returned them to the kernel and
   // took the page faults to map them again, 238,578 of them in 300 steps of the Enhanced
   // floor benchmark, 82,180 with this (61.8 -> 50.5 ms a step; docs/performance.md,
-  // 2026-12-08). Blocks of 32 MiB or more are still mapped apart.
+  // 2026-12-07, night). Blocks of 32 MiB or more are still mapped apart.
   mallopt(M_MMAP_THRESHOLD, 32 << 20);
   mallopt(M_TRIM_THRESHOLD, 1 << 30);
 #endif
@@ -162,6 +162,11 @@ int main(int argc, char** argv) {
   bench->add_option("--steps", perf_args.steps, "perf: timed steps per round (default 20)")
       ->check(CLI::Range(1, 10000));
   bench
+      ->add_option("--settle", perf_args.settle,
+                   "perf: steps each scene takes before its timed rounds (default 5; the "
+                   "scaling runs take 1)")
+      ->check(CLI::Range(1, 100000));
+  bench
       ->add_option("--rounds", perf_args.rounds,
                    "perf: rounds per scene, interleaved with the other scenes' (default 5, 1 with "
                    "--smoke; the median is reported)")
@@ -214,6 +219,7 @@ int main(int argc, char** argv) {
                                                             {"--cells", "perf"},
                                                             {"--steps", "perf"},
                                                             {"--rounds", "perf"},
+                                                            {"--settle", "perf"},
                                                             {"--yardstick", "perf"},
                                                             {"--yardstick-script", "perf"},
                                                             {"--json", "perf"}};

@@ -241,7 +241,7 @@ int timed_perf(const PerfArgs& args) {
   const int cells = args.smoke ? 6 : args.cells;
   const int steps = args.smoke ? 2 : args.steps;
   const int rounds = args.rounds.value_or(args.smoke ? 1 : 5);
-  const int settle = 5;
+  const int settle = args.settle;
   const int threads = static_cast<int>(
       tbb::global_control::active_value(tbb::global_control::max_allowed_parallelism));
   // The yardstick's first round, before anything is written: a script that cannot be run fails
@@ -264,7 +264,11 @@ int timed_perf(const PerfArgs& args) {
       return kExitIo;
     }
   }
-  json report = {{"cells", cells}, {"steps", steps}, {"rounds", rounds}, {"threads", threads}};
+  json report = {{"cells", cells},
+                 {"steps", steps},
+                 {"rounds", rounds},
+                 {"settle", settle},
+                 {"threads", threads}};
   bool faulted = false;
   auto note_fault = [&](const std::string& name, const Timing& t) {
     if (t.fault.empty()) return;
@@ -272,9 +276,9 @@ int timed_perf(const PerfArgs& args) {
     std::cerr << "mpm bench perf: " << name << ": numerical fault: " << t.fault << "\n";
   };
   std::printf(
-      "mpm bench perf: %d^3-cell block, %d rounds of %d timed steps each (median), %d "
+      "mpm bench perf: %d^3-cell block, %d rounds of %d timed steps each (median) after %d, %d "
       "threads\n",
-      cells, rounds, steps, threads);
+      cells, rounds, steps, settle, threads);
   std::printf("  %-40s %9s %10s %9s\n", "step", "particles", "ms/step", "M p-s/s");
 
   // The standard step, MUSL (the default), USL (one transfer each way, as the yardstick) and

@@ -679,6 +679,12 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
           e.bordered_rows = 0;
         }
         const std::vector<int>& factored = e.kkt_signature;
+        // (A checkpoint written before the factorisation's nodes were saved leaves them
+        // unknown: no bordering until the next factorisation.)
+        if (static_cast<Eigen::Index>(e.kkt_alpha_cols.size() * D + factored.size()) !=
+            e.kkt_solver->rows()) {
+          return false;
+        }
         auto key_of = [](const std::vector<int>& rows_signature, std::size_t c, int& run) {
           run = c > 0 && rows_signature[c - 1] == rows_signature[c] ? run + 1 : 0;
           return static_cast<std::int64_t>(rows_signature[c]) * 4 + run;

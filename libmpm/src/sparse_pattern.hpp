@@ -760,7 +760,7 @@ bool conjugate_refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::s
 /// L's dropped copy, the first exact solve with each factorisation checks the copy
 /// (check_dropped(), in `norm`), and refinement reads it where it passed: on Enhanced's floor
 /// benchmark the same passes and factorisations as with all of L (docs/performance.md,
-/// 2026-12-08). Allocates only to factorise (`w` is the caller's scratch).
+/// 2026-12-07, night). Allocates only to factorise (`w` is the caller's scratch).
 template <class Rhs, class Apply, class Form, class Norm = EuclideanNorm>
 bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
                    Eigen::SparseMatrix<double>& base, std::size_t& pattern, bool& refine,

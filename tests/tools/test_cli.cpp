@@ -753,6 +753,7 @@ TEST_F(CommandLine, BenchPerfRunsTheYardsticksScriptAndDividesByItsRate) {
     ASSERT_EQ(r.exit_code, 0) << r.err;
     EXPECT_EQ(read_text(count), "run\n");
     const json perf = json::parse(read_text(report));
+    EXPECT_EQ(perf["settle"].get<int>(), 5);  // the default
     const double rate = threads == 1 ? 4.0 : 8.0;
     EXPECT_EQ(perf["yardstick"]["median"].get<double>(), rate);
     EXPECT_EQ(perf["yardstick"]["rates"].size(), 1U);
@@ -787,14 +788,16 @@ TEST_F(CommandLine, BenchPerfDropsTheRatioWhenALaterYardstickRunFails) {
                          "particle-steps/s'\n");
   fs::permissions(script, fs::perms::owner_all);
   const fs::path report = dir_ / "perf.json";
-  const RunResult r = run_mpm({"bench", "perf", "--smoke", "--rounds", "3", "-j", "2",
-                               "--yardstick-script", script.string(), "--json", report.string()});
+  const RunResult r =
+      run_mpm({"bench", "perf", "--smoke", "--rounds", "3", "--settle", "8", "-j", "2",
+               "--yardstick-script", script.string(), "--json", report.string()});
   EXPECT_EQ(r.exit_code, 1) << r.err;
   EXPECT_EQ(read_text(count), "run\nrun\n");  // the first, the failed second, no third
   EXPECT_TRUE(contains(r.err, "exited with status 4")) << r.err;
   EXPECT_TRUE(contains(r.err, "no throughput ratio")) << r.err;
   const json perf = json::parse(read_text(report));
   EXPECT_EQ(perf["rounds"].get<int>(), 3);
+  EXPECT_EQ(perf["settle"].get<int>(), 8);
   EXPECT_EQ(perf["yardstick"]["rates"].size(), 1U);
   EXPECT_FALSE(perf["yardstick"].contains("median"));
   EXPECT_TRUE(contains(perf["yardstick"]["error"].get<std::string>(), "exited with status 4"));

@@ -102,8 +102,9 @@ enum class LdltValues {
 /// A solver made with LdltValues::single or LdltValues::dropped keeps L's dropped copy
 /// (LdltValues::dropped, made by factorize()), which solves against an aged factor read once
 /// the first exact solve with the factorisation has found it close (check_dropped(),
-/// sparse_pattern.hpp): the Phi coupling's CG since 2026-12-07, Enhanced's refinement since
-/// 2026-12-08. Their passes are set by how far the matrix has moved, not by L's small entries.
+/// sparse_pattern.hpp): the Phi coupling's CG since 2026-12-07 (evening), Enhanced's
+/// refinement since that night. Their passes are set by how far the matrix has moved, not by
+/// L's small entries.
 class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   using Base = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>;
 
