@@ -6,6 +6,8 @@
 #include <array>
 #include <cstdint>
 #include <queue>
+#include <stdexcept>
+#include <string>
 #include <utility>
 #include <vector>
 
@@ -196,6 +198,9 @@ bool BorderedFactor::prepare(const SparseLdlt& solver, LdltValues values,
     const int o = old_of[static_cast<std::size_t>(i)];
     if (o < 0) {
       added_.push_back(static_cast<int>(i));
+    } else if (o >= old_size || kept[static_cast<std::size_t>(o)] != 0) {
+      throw std::logic_error("BorderedFactor: unknown " + std::to_string(o) +
+                             " is not one of the factorisation's, or mapped twice");
     } else {
       kept[static_cast<std::size_t>(o)] = 1;
     }

@@ -865,6 +865,15 @@ TEST(SparseSolve, BorderedFactorSolvesAfterRowsComeAndGo) {
     const Eigen::VectorXd answer = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>(m).solve(rhs);
     EXPECT_LE((x - answer).norm(), 1e-12 * answer.norm());
   }
+  // A map that names an unknown F does not have, or one of F's twice, is the caller's bug.
+  std::vector<int> twice = old_of;
+  twice[1] = 0;
+  EXPECT_THROW(bordered.prepare(solver, LdltValues::full, twice, column_of(same)),
+               std::logic_error);
+  std::vector<int> beyond = old_of;
+  beyond[0] = static_cast<int>(old_matrix.rows());
+  EXPECT_THROW(bordered.prepare(solver, LdltValues::full, beyond, column_of(same)),
+               std::logic_error);
 }
 
 TEST(SparseSolve, BlockSolveRefusesMoreThanThreeColumns) {

@@ -247,9 +247,10 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
 class BorderedFactor {
  public:
   /// `old_of[i]`: F's unknown that the new matrix's unknown i is, or -1 for a new one (each of
-  /// F's at most once); `column(j, out)` sets `out` to the new matrix's column j (its size);
-  /// `values`: which values of L F's solves read (ldlt_solve()). Returns false where A~ is
-  /// singular to working precision (the caller factorises the new matrix instead).
+  /// F's at most once; std::logic_error if one is not F's); `column(j, out)` sets `out` to the new
+  /// matrix's column j (its size); `values`: which values of L F's solves read (ldlt_solve()).
+  /// Returns false where A~ is singular to working precision (the caller factorises the new matrix
+  /// instead).
   bool prepare(const SparseLdlt& solver, LdltValues values, const std::vector<int>& old_of,
                const std::function<void(int, Eigen::VectorXd&)>& column);
   /// x = A~^-1 y (the new matrix's unknowns).
@@ -405,11 +406,12 @@ struct EnhancedState {
   std::vector<int> prepared_signature;
   /// The held rows of the factorisation in hand: 4 * multiplier + contact state, per row.
   std::vector<int> kkt_signature;
-  /// The factorisation in hand bordered for rows that came or went since (BorderedFactor), its
-  /// map of unknowns, and the rows' keys (signature, and which of a multiplier's rows) sorted.
+  /// The factorisation in hand bordered for the unknowns (held rows, enhancement nodes) that
+  /// came or went since (BorderedFactor), its map of unknowns, and the factorised rows' keys
+  /// (signature, and which of a multiplier's rows) sorted.
   BorderedFactor bordered;
   bool kkt_bordered = false;
-  /// Rows gone or new summed over the borderings of the factorisation in hand (the one
+  /// Unknowns gone or new summed over the borderings of the factorisation in hand (the one
   /// kkt_solver->factorizations() called `bordered_factor`): past kBorderedBudget the next
   /// change factorises (enhanced_solve()). A checkpoint saves it.
   std::size_t bordered_rows = 0, bordered_factor = 0;
