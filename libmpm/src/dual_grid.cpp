@@ -1417,12 +1417,9 @@ void Solver<D>::layer_couple(bool remapped) {
       // Against an earlier step's factor, which only preconditions CG, L's dropped copy
       // (SparseLdlt::dropped(): its entries that matter, in single precision); a factor of this
       // step's S solves in full.
-      const bool use_dropped = w.schur->dropped_use() == SparseLdlt::DroppedUse::usable;
+      const LdltValues aged = w.schur->aged_values(LdltValues::single);
       auto factor_solve = [&](const Block& rhs, Block& x) {
-        ldlt_solve(*w.schur, rhs, x, w.solve_work,
-                   !w.schur_refine ? LdltValues::full
-                   : use_dropped   ? LdltValues::dropped
-                                   : LdltValues::single);
+        ldlt_solve(*w.schur, rhs, x, w.solve_work, w.schur_refine ? aged : LdltValues::full);
       };
       // A new factorisation's dropped copy preconditions well where it solves this step's S
       // nearly as well as all of L (check_dropped(), sparse_pattern.hpp); otherwise CG reads
@@ -1430,7 +1427,7 @@ void Solver<D>::layer_couple(bool remapped) {
       auto check = [&] {
         check_dropped(*w.schur, w.gap, w.lambda, w.update, w.solve_work, EuclideanNorm{});
       };
-      if (w.schur_refine && !use_dropped) w.schur->round_to_single();
+      if (w.schur_refine && aged == LdltValues::single) w.schur->round_to_single();
       factor_solve(w.gap, w.lambda);
       if (!w.schur_refine) check();
       if (w.schur_refine) {

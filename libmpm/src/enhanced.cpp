@@ -734,10 +734,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
           apply_kkt(unit, out);
           unit[j] = 0.0;
         };
-        const LdltValues values = e.kkt_solver->dropped_use() == SparseLdlt::DroppedUse::usable
-                                      ? LdltValues::dropped
-                                      : LdltValues::full;
-        return e.bordered.prepare(*e.kkt_solver, values, old_of, column);
+        return e.bordered.prepare(*e.kkt_solver, e.kkt_solver->aged_values(LdltValues::full),
+                                  old_of, column);
       };
       // Forms this step's matrix (if it is not) and factorises it unless its pattern and rows
       // are the factorised one's (`reusable`): the factorisation in hand is for these unknowns

@@ -771,9 +771,7 @@ bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
     check_dropped(solver, b, x, w.update, w.work, norm);
     return true;
   }
-  const LdltValues aged = solver.dropped_use() == SparseLdlt::DroppedUse::usable
-                              ? LdltValues::dropped
-                              : LdltValues::full;
+  const LdltValues aged = solver.aged_values(LdltValues::full);
   ldlt_solve(solver, b, x, w.work, aged);
   const auto factor = [&](const Rhs& r, Rhs& out) { ldlt_solve(solver, r, out, w.work, aged); };
   if (mpm::refine(b, x, apply, factor, passes, w.residual, w.update, 0.0, tolerance, norm)) {

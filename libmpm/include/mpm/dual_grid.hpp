@@ -150,6 +150,11 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   enum class DroppedUse : std::uint8_t { unchecked, usable, unusable };
   [[nodiscard]] DroppedUse dropped_use() const { return dropped_use_; }
   void set_dropped_use(DroppedUse use) { dropped_use_ = use; }
+  /// What a solve that only preconditions (the matrix has moved since) reads: the dropped copy
+  /// where its check passed, `otherwise` (all of L, or its single-precision copy) elsewhere.
+  [[nodiscard]] LdltValues aged_values(LdltValues otherwise) const {
+    return dropped_use_ == DroppedUse::usable ? LdltValues::dropped : otherwise;
+  }
   void compute(const Eigen::SparseMatrix<double>& a) {
     analyzePattern(a);
     factorize(a);
