@@ -26,6 +26,7 @@
 // keep their diagonal update.
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -88,6 +89,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     using Shape = decltype(shape);
     constexpr int kS = Stencil<D, Shape>::S;
     constexpr int kStencil = D == 1 ? kS : D == 2 ? kS * kS : kS * kS * kS;  // nodes
+    static_assert(kStencil <= 32, "a cell node's stencil terms are bits of a 32-bit word");
     auto& order = e.cross_order;
     // The keys side by side; another wall's particles sort last and are cut off.
     order.resize(layer_list_.size());
@@ -123,6 +125,7 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     e.cross_row.resize(groups * kStencil);
     e.cross_used.resize(groups * kStencil);
     e.cross_sum.resize(groups * kStencil * kCell);
+    e.cross_mask.resize(groups * kCell);
     // Each group's terms, in its particles' order: node q's row holds its grid node for now.
     // The group's particles share their standard stencil's nodes (which of them carry mass is
     // read once per group) and their boundary cell's nodes (which of them are candidate columns
@@ -131,9 +134,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
       for (std::size_t g = r.begin(); g != r.end(); ++g) {
         int* node_at = &e.cross_row[g * kStencil];
         std::uint8_t* used = &e.cross_used[g * kStencil];
-        double* sum = &e.cross_sum[g * kStencil * kCell];
+        double sum[kStencil * kCell] = {};  // node q's terms at q * kCell + k
         std::fill(used, used + kStencil, std::uint8_t{0});
-        std::fill(sum, sum + kStencil * kCell, 0.0);
         bool massive[kStencil];
         for (int t = group_first[g]; t < group_first[g + 1]; ++t) {
           const auto i = static_cast<std::size_t>(order[static_cast<std::size_t>(t)].place);
@@ -147,23 +149,40 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
               massive[q++] = grid.mass[node] > mass_threshold_;
             });
           }
-          unsigned columns = 0;  // bit k: the cell's node k is a candidate with N^alpha > 0
+          unsigned columns = 0;       // bit k: the cell's node k is a candidate with N^alpha > 0
+          double weight[kCell] = {};  // N^alpha_k there, 0 elsewhere
           for (int k = 0; k < as.count; ++k) {
-            if (e.alpha_col_of[as.node[k]] >= 0 && as.N[k] > 0.0) columns |= 1U << k;
+            if (e.alpha_col_of[as.node[k]] >= 0 && as.N[k] > 0.0) {
+              columns |= 1U << k;
+              weight[k] = as.N[k];
+            }
           }
           if (columns == 0) continue;
           const double m = P.mass[p];
           int q = 0;
+          // Every node's terms added, a whole row of kCell at a time (vectorised): where N^A or
+          // N^alpha is 0 the term is +0, which leaves the sum as it is, bit for bit (the sums
+          // start at +0 and their terms are not negative), and the terms of nodes without mass
+          // are never read (their `used` stays 0).
           st.for_each(grid, [&](int, double N, const Vec<D>&, const Vec<D>&) {
-            if (N > 0.0 && massive[q]) {
-              const double mN = m * N;
-              for (int k = 0; k < as.count; ++k) {
-                if ((columns & (1U << k)) != 0) sum[q * kCell + k] += mN * as.N[k];
-              }
-              used[q] = static_cast<std::uint8_t>(used[q] | columns);
-            }
+            if (N > 0.0 && massive[q]) used[q] = static_cast<std::uint8_t>(used[q] | columns);
+            const double mN = m * N;
+            double* row = sum + q * kCell;
+            for (int k = 0; k < kCell; ++k) row[k] += mN * weight[k];
             ++q;
           });
+        }
+        // Per cell node k, the stencil nodes q with a term (bit q) and their terms, side by
+        // side for the columns' merge (which reads a cell node's terms of a group together).
+        std::uint32_t* mask = &e.cross_mask[g * kCell];
+        std::fill(mask, mask + kCell, std::uint32_t{0});
+        for (int q = 0; q < kStencil; ++q) {
+          for (int k = 0; k < kCell; ++k) {
+            if ((used[q] & (1U << k)) == 0) continue;
+            mask[k] |= std::uint32_t{1} << q;
+            e.cross_sum[(g * kCell + static_cast<std::size_t>(k)) * kStencil +
+                        static_cast<std::size_t>(q)] = sum[q * kCell + k];
+          }
         }
       }
     });
@@ -186,17 +205,13 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     pair_first.assign(columns + 1, 0);
     slab_first.assign(columns + 1, 0);
     for (std::size_t g = 0; g < groups; ++g) {
-      int terms[kCell] = {};
       for (int q = 0; q < kStencil; ++q) {
         const std::size_t at = g * kStencil + static_cast<std::size_t>(q);
-        const unsigned used = e.cross_used[at];
-        if (used == 0) continue;
-        e.cross_row[at] = row_of(e.cross_row[at]);
-        for (int k = 0; k < kCell; ++k) terms[k] += static_cast<int>((used >> k) & 1U);
+        if (e.cross_used[at] != 0) e.cross_row[at] = row_of(e.cross_row[at]);
       }
       for_each_column(g, [&](std::size_t c, int k) {
         ++pair_first[c + 1];
-        slab_first[c + 1] += terms[k];
+        slab_first[c + 1] += std::popcount(e.cross_mask[g * kCell + static_cast<std::size_t>(k)]);
       });
     }
     std::partial_sum(pair_first.begin(), pair_first.end(), pair_first.begin());
@@ -231,11 +246,11 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
         for (int j = pair_first[c]; j < pair_first[c + 1]; ++j) {
           const auto g = static_cast<std::size_t>(pairs[static_cast<std::size_t>(j)] / kCell);
           const int k = pairs[static_cast<std::size_t>(j)] % kCell;
-          for (int q = 0; q < kStencil; ++q) {
-            const std::size_t at = g * kStencil + static_cast<std::size_t>(q);
-            if ((e.cross_used[at] & (1U << k)) == 0) continue;
-            const auto row = static_cast<std::size_t>(e.cross_row[at]);
-            const double value = e.cross_sum[at * kCell + static_cast<std::size_t>(k)];
+          const std::size_t gk = g * kCell + static_cast<std::size_t>(k);
+          for (std::uint32_t q_bits = e.cross_mask[gk]; q_bits != 0; q_bits &= q_bits - 1) {
+            const auto q = static_cast<std::size_t>(std::countr_zero(q_bits));
+            const auto row = static_cast<std::size_t>(e.cross_row[g * kStencil + q]);
+            const double value = e.cross_sum[gk * kStencil + q];
             if (acc.held[row] == 0) {
               acc.held[row] = 1;
               acc.sum[row] = value;

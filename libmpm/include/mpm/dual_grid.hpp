@@ -473,10 +473,13 @@ struct EnhancedState {
   /// Per group g (cross_group_first[g] .. cross_group_first[g + 1] - 1 in cross_order) and node
   /// q of its standard stencil: the node's row (its grid node until the rows are numbered), the
   /// boundary-cell nodes k it has a term with (bit k), and the terms sum_p m_p N^A_q N^alpha_k
-  /// (cross_sum[(g * stencil + q) * kCellNodes + k]).
+  /// (cross_sum[(g * kCellNodes + k) * stencil + q], written where node q has a term with k).
   std::vector<int> cross_group_first, cross_row;
   std::vector<std::uint8_t> cross_used;
   std::vector<double> cross_sum;
+  /// Per group g and boundary-cell node k: the stencil nodes q with a term (bit q), at
+  /// cross_mask[g * kCellNodes + k].
+  std::vector<std::uint32_t> cross_mask;
   /// Per candidate column: its (group, k) pairs in group order (cross_pairs from
   /// cross_pair_first[c], as g * kCellNodes + k), where its merged entries go in cross_slab (at
   /// most as many as its terms: from cross_slab_first[c]) and how many there are.
