@@ -1076,10 +1076,12 @@ void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool rec
 }
 
 // Forms this step's Schur complement of the Phi coupling (layer_couple) and factorises it,
-// analysing the ordering again only for a new pattern; keeps it as the matrix the factorisation
-// is of (a checkpoint saves it). False, with the fault set, if it cannot be factorised.
+// analysing its pattern again only if it is new (keeping the ordering in hand if `order` says
+// the multipliers are the factorised ones and it still fits, SparseLdlt::analyzePattern());
+// keeps it as the matrix the factorisation is of (a checkpoint saves it). False, with the fault
+// set, if it cannot be factorised.
 template <int D>
-bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar) {
+bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar, SparseLdlt::Order order) {
   // S = B^T B with B = [M_A^-1/2 R^A; M_alpha^-1/2 R^alpha; shift^1/2 I] (the second block for
   // mortar only): sparse products of B form both terms and the shift.
   const Eigen::Index ng = w.grid_active.rows(), k = w.grid_active.cols();
@@ -1151,7 +1153,7 @@ bool Solver<D>::factorise_schur(DualWall<D>& w, bool mortar) {
   }
   bool refining = false;  // not reusable: layer_couple() decided to factorise
   if (!factorise_or_reuse(*w.schur, S, w.schur_base, w.pattern_hash, w.schur_factored, false,
-                          refining, w.factorizations)) {
+                          refining, w.factorizations, order)) {
     fault_ = "dual wall \"" + w.spec->name + "\": the Phi coupling matrix does not factorise";
   }
   return w.schur_factored;
@@ -1322,11 +1324,15 @@ void Solver<D>::layer_couple(bool remapped) {
       }
       const bool waiting = w.refine_wait > 0;
       if (waiting) --w.refine_wait;
-      w.schur_refine =
-          w.schur_factored && structure == w.factored_structure && w.schur->rows() == k && !waiting;
+      const bool same =
+          w.schur_factored && structure == w.factored_structure && w.schur->rows() == k;
+      w.schur_refine = same && !waiting;
       if (!w.schur_refine) {
         w.factored_structure = structure;
-        if (!factorise_schur(w, mortar)) continue;
+        if (!factorise_schur(w, mortar,
+                             same ? SparseLdlt::Order::kept : SparseLdlt::Order::fresh)) {
+          continue;
+        }
       }
     }
     if (w.active_multipliers.empty() || !w.schur_factored) continue;
@@ -1461,7 +1467,7 @@ void Solver<D>::layer_couple(bool remapped) {
         } else {
           w.refine_wait = w.refine_backoff;
           w.refine_backoff = std::clamp(2 * w.refine_backoff, 1, 64);
-          if (!factorise_schur(w, mortar)) return;
+          if (!factorise_schur(w, mortar, SparseLdlt::Order::kept)) return;
           w.schur_refine = false;
           factor_solve(w.gap, w.lambda);
           check();
@@ -1706,18 +1712,18 @@ void Solver<D>::layer_gather_gradient() {
                     });
 }
 
-#define MPM_DUAL_GRID_MEMBERS(D)                                                  \
-  template std::vector<std::string> Solver<D>::wall_names() const;                \
-  template void Solver<D>::setup_dual_walls();                                    \
-  template void Solver<D>::locate_in_layers();                                    \
-  template void Solver<D>::layer_scatter(bool);                                   \
-  template void Solver<D>::layer_update(double);                                  \
-  template void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*, bool); \
-  template void Solver<D>::layer_couple(bool);                                    \
-  template std::vector<CouplingWork> Solver<D>::coupling_work() const;            \
-  template bool Solver<D>::factorise_schur(DualWall<D>&, bool);                   \
-  template void Solver<D>::layer_gather(double);                                  \
-  template void Solver<D>::layer_remap();                                         \
+#define MPM_DUAL_GRID_MEMBERS(D)                                                   \
+  template std::vector<std::string> Solver<D>::wall_names() const;                 \
+  template void Solver<D>::setup_dual_walls();                                     \
+  template void Solver<D>::locate_in_layers();                                     \
+  template void Solver<D>::layer_scatter(bool);                                    \
+  template void Solver<D>::layer_update(double);                                   \
+  template void Solver<D>::layer_walls(std::vector<Vec<D>> DualWall<D>::*, bool);  \
+  template void Solver<D>::layer_couple(bool);                                     \
+  template std::vector<CouplingWork> Solver<D>::coupling_work() const;             \
+  template bool Solver<D>::factorise_schur(DualWall<D>&, bool, SparseLdlt::Order); \
+  template void Solver<D>::layer_gather(double);                                   \
+  template void Solver<D>::layer_remap();                                          \
   template void Solver<D>::layer_gather_gradient();
 
 MPM_DUAL_GRID_MEMBERS(1)

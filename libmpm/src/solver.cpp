@@ -1327,6 +1327,52 @@ Eigen::SparseMatrix<double> restore_sparse(const Checkpoint& c, const std::strin
   return m;
 }
 
+/// The matrix a factorisation is of (save_sparse()) and its fill-reducing ordering under
+/// key.ordering: the fill L had when the ordering was made, then Eigen's P^-1 (a kept ordering,
+/// SparseLdlt::analyzePattern(), is not the one a fresh analysis of the matrix would make).
+void save_factorised(Checkpoint& c, const std::string& key, const Eigen::SparseMatrix<double>& m,
+                     const SparseLdlt& solver) {
+  save_sparse(c, key, m);
+  const auto& inverse = solver.permutationPinv().indices();
+  auto& saved = c.integers[key + ".ordering"];
+  saved.assign(1, static_cast<std::int64_t>(solver.ordered_fill()));
+  saved.insert(saved.end(), inverse.data(), inverse.data() + inverse.size());
+}
+
+/// The factorisation save_factorised() saved under key, made again into `solver` in the same
+/// ordering (a checkpoint without one: Eigen's AMD, as runs made then); returns its matrix.
+/// Throws std::runtime_error naming the key if the arrays do not make one, or the matrix does
+/// not factorise.
+Eigen::SparseMatrix<double> restore_factorised(const Checkpoint& c, const std::string& key,
+                                               SparseLdlt& solver) {
+  Eigen::SparseMatrix<double> m = restore_sparse(c, key);
+  if (const auto it = c.integers.find(key + ".ordering"); it != c.integers.end()) {
+    const std::vector<std::int64_t>& saved = it->second;
+    if (saved.size() != static_cast<std::size_t>(m.rows()) + 1 || saved[0] < 0 ||
+        m.rows() != m.cols()) {
+      throw std::runtime_error(key + ".ordering: expected the fill and " +
+                               std::to_string(m.rows()) + " unknowns");
+    }
+    std::vector<int> inverse(saved.size() - 1);
+    for (std::size_t k = 0; k < inverse.size(); ++k) {
+      const std::int64_t v = saved[k + 1];
+      inverse[k] = v < 0 || v > std::numeric_limits<int>::max() ? -1 : static_cast<int>(v);
+    }
+    try {
+      solver.analyzePattern(m, inverse, static_cast<std::size_t>(saved[0]));
+    } catch (const std::invalid_argument&) {
+      throw std::runtime_error(key + ".ordering: not a permutation of the unknowns");
+    }
+  } else {
+    solver.analyzePattern(m);
+  }
+  solver.factorize(m);
+  if (solver.info() != Eigen::Success) {
+    throw std::runtime_error(key + ": the saved matrix does not factorise");
+  }
+  return m;
+}
+
 /// A factorisation's SparseLdlt::DroppedUse as a checkpoint saves it: {use, checked}.
 std::array<std::int64_t, 2> dropped_use_pair(const SparseLdlt& solver) {
   switch (solver.dropped_use()) {
@@ -1385,8 +1431,8 @@ void Solver<D>::save_state(Checkpoint& c) const {
                                                   : std::int64_t{0}};
     c.integers[key + "kkt_signature"].assign(e.kkt_signature.begin(), e.kkt_signature.end());
     c.integers[key + "kkt_alpha_cols"].assign(e.kkt_alpha_cols.begin(), e.kkt_alpha_cols.end());
-    if (e.schur_factored) save_sparse(c, key + "schur", e.schur_base);
-    if (e.kkt_factored) save_sparse(c, key + "kkt", e.kkt_base);
+    if (e.schur_factored) save_factorised(c, key + "schur", e.schur_base, *e.schur_solver);
+    if (e.kkt_factored) save_factorised(c, key + "kkt", e.kkt_base, *e.kkt_solver);
     // Mortar / one-way: the Schur complement the factorisation in hand is of.
     const std::string phi = "solver.coupling_" + std::to_string(i) + ".";
     c.integers[phi + "factored"] = {dual_[i].schur_factored ? 1 : 0,
@@ -1394,7 +1440,9 @@ void Solver<D>::save_state(Checkpoint& c) const {
                                     dual_[i].refine_wait, dual_[i].refine_backoff};
     const auto phi_dropped = dropped_use_pair(*dual_[i].schur);
     c.integers[phi + "dropped"] = {phi_dropped[0], phi_dropped[1]};
-    if (dual_[i].schur_factored) save_sparse(c, phi + "schur", dual_[i].schur_base);
+    if (dual_[i].schur_factored) {
+      save_factorised(c, phi + "schur", dual_[i].schur_base, *dual_[i].schur);
+    }
   }
 }
 
@@ -1439,12 +1487,9 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     }
     auto refactorise = [&](const std::string& name, Eigen::SparseMatrix<double>& base,
                            SparseLdlt& solver, std::size_t& pattern, bool& ok) {
-      base = restore_sparse(c, name);
-      solver.analyzePattern(base);
-      solver.factorize(base);
+      base = restore_factorised(c, name, solver);
       pattern = pattern_hash(base);
-      ok = solver.info() == Eigen::Success;
-      if (!ok) throw std::runtime_error(name + ": the saved matrix does not factorise");
+      ok = true;
     };
     if (factored[0] != 0) {
       refactorise(key + "schur", e.schur_base, *e.schur_solver, e.schur_pattern, e.schur_factored);

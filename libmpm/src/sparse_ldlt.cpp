@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <array>
+#include <chrono>
 #include <cstdint>
 #include <queue>
 #include <stdexcept>
@@ -28,6 +29,52 @@ constexpr double kWorthwhile = 0.75;
 constexpr double kBalanced = 1.02;
 
 }  // namespace
+
+std::size_t SparseLdlt::symbolic(const Eigen::SparseMatrix<double>& a) {
+  CholMatrixType permuted(a.rows(), a.cols());
+  permuted.selfadjointView<Eigen::Upper>() = a.selfadjointView<Eigen::Lower>().twistedBy(m_P);
+  analyzePattern_preordered(permuted, true);
+  return static_cast<std::size_t>(m_nonZerosPerCol.sum());
+}
+
+void SparseLdlt::analyzePattern(const Eigen::SparseMatrix<double>& a, Order order) {
+  const auto start = std::chrono::steady_clock::now();
+  split_stale_ = true;
+  // (A kept ordering whose fill grew too far leaves the symbolic step to be taken again below:
+  // the matrices are small beside the numeric step's work, about a tenth of the ordering's.)
+  if (order == Order::kept && ordered_fill_ > 0 && m_P.size() == a.rows() &&
+      static_cast<double>(symbolic(a)) <= kReorderFill * static_cast<double>(ordered_fill_)) {
+    ++kept_orderings_;
+    analysis_seconds_ += since(start);
+    return;
+  }
+  Base::analyzePattern(a);
+  ordered_fill_ = static_cast<std::size_t>(m_nonZerosPerCol.sum());
+  analysis_seconds_ += since(start);
+}
+
+void SparseLdlt::analyzePattern(const Eigen::SparseMatrix<double>& a,
+                                const std::vector<int>& inverse, std::size_t ordered_fill) {
+  const auto start = std::chrono::steady_clock::now();
+  const auto n = static_cast<std::size_t>(a.rows());
+  std::vector<char> seen(n, 0);
+  for (const int k : inverse) {
+    if (k < 0 || static_cast<std::size_t>(k) >= n || seen[static_cast<std::size_t>(k)] != 0) {
+      throw std::invalid_argument("SparseLdlt: the ordering is not a permutation of the unknowns");
+    }
+    seen[static_cast<std::size_t>(k)] = 1;
+  }
+  if (inverse.size() != n) {
+    throw std::invalid_argument("SparseLdlt: the ordering is not a permutation of the unknowns");
+  }
+  m_Pinv.resize(a.rows());
+  std::copy(inverse.begin(), inverse.end(), m_Pinv.indices().data());
+  m_P = m_Pinv.inverse();
+  split_stale_ = true;
+  symbolic(a);
+  ordered_fill_ = ordered_fill;
+  analysis_seconds_ += since(start);
+}
 
 SubtreeSplit split_subtrees(const Eigen::SparseMatrix<double>& l) {
   SubtreeSplit split;

@@ -777,9 +777,10 @@ bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
   if (mpm::refine(b, x, apply, factor, passes, w.residual, w.update, 0.0, tolerance, norm)) {
     return true;
   }
+  // (The unknowns are the factorisation's: its fill-reducing ordering serves while it fits.)
   const Eigen::SparseMatrix<double>& m = form();
   if (const std::size_t hash = pattern_hash(m); hash != pattern) {
-    solver.analyzePattern(m);
+    solver.analyzePattern(m, SparseLdlt::Order::kept);
     pattern = hash;
   }
   solver.factorize(m);
@@ -806,16 +807,18 @@ bool refined_solve(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
 
 /// Factorises m into `solver` unless `solver` holds a factorisation of an earlier matrix with the
 /// same pattern (then refined_solve() refines against it): sets `refine` accordingly. Returns
-/// false if m cannot be factorised. `base` as in refined_solve().
+/// false if m cannot be factorised. `base` as in refined_solve(); `order` as in
+/// SparseLdlt::analyzePattern() (Order::kept: m's unknowns are the factorisation's).
 inline bool factorise_or_reuse(SparseLdlt& solver, const Eigen::SparseMatrix<double>& m,
                                Eigen::SparseMatrix<double>& base, std::size_t& pattern,
                                bool& factored, bool reusable, bool& refine,
-                               std::size_t& factorizations) {
+                               std::size_t& factorizations,
+                               SparseLdlt::Order order = SparseLdlt::Order::fresh) {
   const std::size_t hash = pattern_hash(m);
   refine = factored && reusable && hash == pattern;
   if (refine) return true;
   if (hash != pattern) {
-    solver.analyzePattern(m);
+    solver.analyzePattern(m, order);
     pattern = hash;
   }
   solver.factorize(m);

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <numeric>
 #include <random>
 #include <stdexcept>
 #include <vector>
@@ -769,6 +770,91 @@ Eigen::SparseMatrix<double> contact_system(const Eigen::SparseMatrix<double>& ve
 // few rows gone and a few new (in another order): exactly where the kept block is the
 // factorised one's, and as a preconditioner of refinement as good as the factorisation itself
 // where that block has moved (a drift of the masses), since the rest is exact.
+// A matrix with the unknowns of the one analysed last (refinement against an aged factorisation
+// that failed) keeps its fill-reducing ordering (SparseLdlt::Order::kept) while the fill it
+// gives stays within kReorderFill of the fill it was made with; the unknowns renumbered, it
+// would give far more, and a new ordering is made, the one a fresh analysis makes. A saved
+// ordering (a checkpoint's) makes the factorisation again bit for bit.
+TEST(SparseSolve, KeptOrderingServesWhileItsFillHolds) {
+  const Eigen::SparseMatrix<double> a = grid_spd(30);
+  const auto n = static_cast<int>(a.rows());
+  SparseLdlt solver;
+  solver.analyzePattern(a);
+  const std::size_t fill = solver.ordered_fill();
+  const std::vector<int> ordering(solver.permutationPinv().indices().data(),
+                                  solver.permutationPinv().indices().data() + n);
+  ASSERT_GT(fill, 0U);
+  EXPECT_EQ(solver.kept_orderings(), 0U);
+
+  // Two entries more (nodes three apart now coupled, the diagonals kept dominant) and the
+  // diagonals moved: the ordering serves, and its factorisation solves the new matrix exactly.
+  std::vector<Eigen::Triplet<double>> entries;
+  for (int c = 0; c < n; ++c) {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(a, c); it; ++it) {
+      entries.emplace_back(static_cast<int>(it.row()), c, it.value() * (it.row() == c ? 1.1 : 1));
+    }
+  }
+  for (const int i : {400, 433}) {
+    entries.emplace_back(i, i + 3, -0.1);
+    entries.emplace_back(i + 3, i, -0.1);
+  }
+  Eigen::SparseMatrix<double> near(n, n);
+  near.setFromTriplets(entries.begin(), entries.end());
+  ASSERT_NE(pattern_hash(near), pattern_hash(a));
+  solver.analyzePattern(near, SparseLdlt::Order::kept);
+  EXPECT_EQ(solver.kept_orderings(), 1U);
+  EXPECT_EQ(solver.ordered_fill(), fill);  // what the ordering gave its own matrix
+  EXPECT_TRUE(
+      std::equal(ordering.begin(), ordering.end(), solver.permutationPinv().indices().data()));
+  solver.factorize(near);
+  ASSERT_EQ(solver.info(), Eigen::Success);
+  const Block3 b = random_block(n, 41);
+  Block3 x;
+  std::vector<double> work;
+  ldlt_solve(solver, b, x, work);
+  EXPECT_LE((near * x - b).norm(), 1e-12 * b.norm());
+
+  // Made again from the saved ordering: the same L and D, bit for bit.
+  SparseLdlt again;
+  again.analyzePattern(near, ordering, fill);
+  again.factorize(near);
+  ASSERT_EQ(again.info(), Eigen::Success);
+  EXPECT_EQ(again.ordered_fill(), fill);
+  const auto& l = solver.matrixL().nestedExpression();
+  const auto& l_again = again.matrixL().nestedExpression();
+  ASSERT_EQ(l_again.nonZeros(), l.nonZeros());
+  EXPECT_TRUE(std::equal(l.valuePtr(), l.valuePtr() + l.nonZeros(), l_again.valuePtr()));
+  EXPECT_EQ(again.diagonal(), solver.diagonal());
+
+  // A fresh analysis makes its own ordering whatever the fill.
+  solver.analyzePattern(near);
+  EXPECT_EQ(solver.kept_orderings(), 1U);
+
+  // The unknowns renumbered at random (the same graph): the ordering in hand would give far
+  // more fill, and the one made is a fresh analysis's.
+  std::vector<int> order(static_cast<std::size_t>(n));
+  std::iota(order.begin(), order.end(), 0);
+  std::shuffle(order.begin(), order.end(), std::mt19937(5));
+  Eigen::PermutationMatrix<Eigen::Dynamic, Eigen::Dynamic, int> shuffle(n);
+  std::copy(order.begin(), order.end(), shuffle.indices().data());
+  Eigen::SparseMatrix<double> renumbered;
+  renumbered = near.twistedBy(shuffle);
+  solver.analyzePattern(renumbered, SparseLdlt::Order::kept);
+  EXPECT_EQ(solver.kept_orderings(), 1U);
+  SparseLdlt fresh;
+  fresh.analyzePattern(renumbered);
+  EXPECT_EQ(solver.ordered_fill(), fresh.ordered_fill());
+  EXPECT_EQ(solver.permutationPinv().indices(), fresh.permutationPinv().indices());
+
+  // Not a permutation of the unknowns: refused.
+  std::vector<int> twice = ordering;
+  twice[1] = twice[0];
+  EXPECT_THROW(again.analyzePattern(near, twice, fill), std::invalid_argument);
+  EXPECT_THROW(
+      again.analyzePattern(near, std::vector<int>(ordering.begin(), ordering.end() - 1), fill),
+      std::invalid_argument);
+}
+
 TEST(SparseSolve, BorderedFactorSolvesAfterRowsComeAndGo) {
   const Eigen::SparseMatrix<double> velocity = grid_spd(12, 2);
   const Eigen::Index nv = velocity.rows();

@@ -159,12 +159,29 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
     analyzePattern(a);
     factorize(a);
   }
-  void analyzePattern(const Eigen::SparseMatrix<double>& a) {
-    const auto start = std::chrono::steady_clock::now();
-    Base::analyzePattern(a);
-    split_stale_ = true;
-    analysis_seconds_ += since(start);
-  }
+  /// Whether analyzePattern() may keep the fill-reducing ordering in hand: Order::kept where
+  /// a's unknowns are those of the matrix analysed last, in the same order (a matrix whose
+  /// entries moved, came or went: refinement against an aged factorisation that failed, where
+  /// the unknowns are those of the factorisation in hand by definition).
+  enum class Order : std::uint8_t { fresh, kept };
+  /// The fill-reducing ordering (Eigen's AMD) and the symbolic factorisation of a's pattern (a's
+  /// lower triangle). With Order::kept, the ordering in hand is kept (only the symbolic step is
+  /// taken) unless L would then have more than kReorderFill times the entries it had when that
+  /// ordering was made for its own matrix: Eigen's AMD took 60-85 ms of the 250-280 ms an
+  /// Enhanced floor factorisation took (docs/performance.md, 2026-12-07, late), and the fill of
+  /// a kept ordering grew 0-1.5% over the 20-40 steps between factorisations there.
+  void analyzePattern(const Eigen::SparseMatrix<double>& a, Order order = Order::fresh);
+  /// The symbolic factorisation of a's pattern in the ordering `inverse` (Eigen's P^-1: entry k
+  /// the unknown eliminated k-th), which was made for a matrix whose L had `ordered_fill`
+  /// entries: a checkpoint's factorisation made again as the run made it.
+  void analyzePattern(const Eigen::SparseMatrix<double>& a, const std::vector<int>& inverse,
+                      std::size_t ordered_fill);
+  /// L's entries (below the diagonal) when the ordering in hand was made (analyzePattern()).
+  [[nodiscard]] std::size_t ordered_fill() const { return ordered_fill_; }
+  /// analyzePattern() calls that kept the ordering in hand (Order::kept and the fill test
+  /// passed) so far.
+  [[nodiscard]] std::size_t kept_orderings() const { return kept_orderings_; }
+  static constexpr double kReorderFill = 1.05;
   void factorize(const Eigen::SparseMatrix<double>& a) {
     const auto start = std::chrono::steady_clock::now();
     Base::factorize(a);
@@ -224,6 +241,10 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   Dropped dropped_;
   std::vector<float> single_;
   std::vector<double> root_;
+  /// The symbolic factorisation of a's pattern in the ordering m_P; L's entries below the
+  /// diagonal.
+  std::size_t symbolic(const Eigen::SparseMatrix<double>& a);
+  std::size_t ordered_fill_ = 0, kept_orderings_ = 0;
   bool keeps_single_ = false;
   bool keeps_dropped_ = false;
   DroppedUse dropped_use_ = DroppedUse::unchecked;

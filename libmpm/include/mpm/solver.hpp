@@ -264,7 +264,7 @@ class Solver final : public Simulation {
   void layer_update(double dt);
   void layer_walls(std::vector<Vec<D>> DualWall<D>::*velocity, bool record);
   void layer_couple(bool remapped);
-  bool factorise_schur(DualWall<D>& w, bool mortar);
+  bool factorise_schur(DualWall<D>& w, bool mortar, SparseLdlt::Order order);
   void layer_gather(double dt);
   void layer_gather_gradient();
   void layer_remap();
