@@ -1341,7 +1341,7 @@ void Solver<D>::layer_couple(bool remapped) {
     // the remapped velocities of MUSL; all D components in one solve. The blocks are the wall's
     // scratch (sized once per active set).
     using Block = NodeBlock<D>;
-    auto solve = [&](NodeField<Vec<D>>& va, std::vector<Vec<D>>& valpha) {
+    auto solve = [&](NodeField<Vec<D>>& va, std::vector<Vec<D>>& valpha, int kind) {
       const auto ng = static_cast<Eigen::Index>(w.grid_rows.size());
       const auto nl = static_cast<Eigen::Index>(w.layer_rows.size());
       const Eigen::Index k = w.grid_active.cols();
@@ -1434,7 +1434,20 @@ void Solver<D>::layer_couple(bool remapped) {
         check_dropped(*w.schur, w.gap, w.lambda, w.update, w.solve_work, EuclideanNorm{});
       };
       if (w.schur_refine && aged == LdltValues::single) w.schur->round_to_single();
-      factor_solve(w.gap, w.lambda);
+      // CG against an aged factorisation starts from the multipliers the last solve of this
+      // kind found where they are for the same multipliers (a layer in steady contact: its
+      // impulses change little from step to step), elsewhere from the factor's answer. The
+      // mortar floor, 300 steps on two threads: solves 0.55 -> 0.40 s under MLS-MPM (the factor's
+      // solve that started CG saved, the passes 990 -> 957; 9 factorisations against 7) and 0.86
+      // -> 0.77 s under MUSL (passes 1,790 -> 1,740); the debris scene's first 3 s: solves 6.98 ->
+      // 6.44 s, 2,488 factorisations against 2,508 (docs/performance.md, 2026-12-07, late).
+      const auto slot = static_cast<std::size_t>(kind);
+      if (w.schur_refine && w.last_structure[slot] == w.factored_structure &&
+          w.last_lambda[slot].rows() == k) {
+        w.lambda = w.last_lambda[slot];
+      } else {
+        factor_solve(w.gap, w.lambda);
+      }
       if (!w.schur_refine) check();
       if (w.schur_refine) {
         // CG preconditioned by the factorisation in hand (conjugate_refine(): to an error below
@@ -1473,6 +1486,8 @@ void Solver<D>::layer_couple(bool remapped) {
           check();
         }
       }
+      w.last_lambda[slot] = w.lambda;
+      w.last_structure[slot] = w.factored_structure;
       // The impulses: v^A -= M_A^-1 R^A lambda, v^alpha += M_alpha^-1 R^alpha lambda (mortar).
       by_rows(w.lambda, mortar, [&](Eigen::Index r, int which, const double* sum) {
         const Vec<D> impulse = Eigen::Map<const Vec<D>>(sum);
@@ -1487,12 +1502,12 @@ void Solver<D>::layer_couple(bool remapped) {
     };
     const PartTimer<D> timer(w, w.solve_seconds);
     if (remapped) {
-      solve(grid.velocity, w.velocity);
+      solve(grid.velocity, w.velocity, 2);
     } else {
-      solve(grid.velocity_new, w.velocity_new);
+      solve(grid.velocity_new, w.velocity_new, 0);
       // Only FLIP reads the old velocities again (v^{n+1} - v^n); PIC and APIC gather v^{n+1}.
       if (flip_increment()) {
-        solve(grid.velocity, w.velocity);
+        solve(grid.velocity, w.velocity, 1);
       }
     }
   }
