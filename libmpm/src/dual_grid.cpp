@@ -1436,14 +1436,18 @@ void Solver<D>::layer_couple(bool remapped) {
       if (w.schur_refine && aged == LdltValues::single) w.schur->round_to_single();
       // CG against an aged factorisation starts from the multipliers the last solve of this
       // kind found where they are for the same multipliers (a layer in steady contact: its
-      // impulses change little from step to step), elsewhere from the factor's answer. The
-      // mortar floor, 300 steps on two threads: solves 0.55 -> 0.40 s under MLS-MPM (the factor's
-      // solve that started CG saved, the passes 990 -> 957; 9 factorisations against 7) and 0.86
-      // -> 0.77 s under MUSL (passes 1,790 -> 1,740); the debris scene's first 3 s: solves 6.98 ->
-      // 6.44 s, 2,488 factorisations against 2,508 (docs/performance.md, 2026-12-07, late).
+      // impulses change little from step to step), elsewhere from the factor's answer; CG that
+      // fails from the last multipliers tries again from the factor's answer before S is
+      // factorised (a flow's front changes its impulses faster than the factor ages: started
+      // warm without the second try, the main job factorised 10,428 times against 9,383). The
+      // mortar floor, 300 steps on two threads: solves 0.62 -> 0.53 s under MLS-MPM, 1.03 ->
+      // 0.86 s under MUSL, 6 factorisations against 7; the main job 9,058 factorisations and
+      // 59,666 passes against 9,383 and 44,837, its steps 244.8 -> 234.8 s (docs/performance.md,
+      // 2026-12-07, late).
       const auto slot = static_cast<std::size_t>(kind);
-      if (w.schur_refine && w.last_structure[slot] == w.factored_structure &&
-          w.last_lambda[slot].rows() == k) {
+      const bool warm = w.schur_refine && w.last_structure[slot] == w.factored_structure &&
+                        w.last_lambda[slot].rows() == k;
+      if (warm) {
         w.lambda = w.last_lambda[slot];
       } else {
         factor_solve(w.gap, w.lambda);
@@ -1473,9 +1477,16 @@ void Solver<D>::layer_couple(bool remapped) {
                        }
                      });
         };
-        if (conjugate_refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
-                             w.update, w.search, w.search_product, scale,
-                             tolerance)) {  // sparse_pattern.hpp
+        const auto cg = [&] {
+          return conjugate_refine(w.gap, w.lambda, apply, factor_solve, w.refinements, w.residual,
+                                  w.update, w.search, w.search_product, scale, tolerance);
+        };
+        bool converged = cg();  // sparse_pattern.hpp
+        if (!converged && warm) {
+          factor_solve(w.gap, w.lambda);
+          converged = cg();
+        }
+        if (converged) {
           w.refine_backoff = 0;
         } else {
           w.refine_wait = w.refine_backoff;
