@@ -1443,7 +1443,7 @@ void Solver<D>::layer_couple(bool remapped) {
       // mortar floor, 300 steps on two threads: solves 0.62 -> 0.53 s under MLS-MPM, 1.03 ->
       // 0.86 s under MUSL, 6 factorisations against 7; the main job 9,058 factorisations and
       // 59,666 passes against 9,383 and 44,837, its steps 244.8 -> 234.8 s (docs/performance.md,
-      // 2026-12-07, late).
+      // 2026-12-07, late night).
       const auto slot = static_cast<std::size_t>(kind);
       const bool warm = w.schur_refine && w.last_structure[slot] == w.factored_structure &&
                         w.last_lambda[slot].rows() == k;
