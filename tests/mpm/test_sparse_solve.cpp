@@ -766,10 +766,6 @@ Eigen::SparseMatrix<double> contact_system(const Eigen::SparseMatrix<double>& ve
   return m;
 }
 
-// BorderedFactor inverts, through the factorisation of an earlier contact system, one with a
-// few rows gone and a few new (in another order): exactly where the kept block is the
-// factorised one's, and as a preconditioner of refinement as good as the factorisation itself
-// where that block has moved (a drift of the masses), since the rest is exact.
 // A matrix with the unknowns of the one analysed last (refinement against an aged factorisation
 // that failed) keeps its fill-reducing ordering (SparseLdlt::Order::kept) while the fill it
 // gives stays within kReorderFill of the fill it was made with; the unknowns renumbered, it
@@ -855,6 +851,10 @@ TEST(SparseSolve, KeptOrderingServesWhileItsFillHolds) {
       std::invalid_argument);
 }
 
+// BorderedFactor inverts, through the factorisation of an earlier contact system, one with a
+// few rows gone and a few new (in another order): exactly where the kept block is the
+// factorised one's, and as a preconditioner of refinement as good as the factorisation itself
+// where that block has moved (a drift of the masses), since the rest is exact.
 TEST(SparseSolve, BorderedFactorSolvesAfterRowsComeAndGo) {
   const Eigen::SparseMatrix<double> velocity = grid_spd(12, 2);
   const Eigen::Index nv = velocity.rows();

@@ -168,8 +168,8 @@ class SparseLdlt : public Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> {
   /// lower triangle). With Order::kept, the ordering in hand is kept (only the symbolic step is
   /// taken) unless L would then have more than kReorderFill times the entries it had when that
   /// ordering was made for its own matrix: Eigen's AMD took 60-85 ms of the 250-280 ms an
-  /// Enhanced floor factorisation took (docs/performance.md, 2026-12-07, late night), and the fill of
-  /// a kept ordering grew 0-1.5% over the 20-40 steps between factorisations there.
+  /// Enhanced floor factorisation took (docs/performance.md, 2026-12-07, late night), and the fill
+  /// of a kept ordering grew 0-1.5% over the 20-40 steps between factorisations there.
   void analyzePattern(const Eigen::SparseMatrix<double>& a, Order order = Order::fresh);
   /// The symbolic factorisation of a's pattern in the ordering `inverse` (Eigen's P^-1: entry k
   /// the unknown eliminated k-th), which was made for a matrix whose L had `ordered_fill`
