@@ -123,7 +123,6 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     group_first.push_back(static_cast<int>(order.size()));
 
     e.cross_row.resize(groups * kStencil);
-    e.cross_used.resize(groups * kStencil);
     e.cross_sum.resize(groups * kStencil * kCell);
     e.cross_mask.resize(groups * kCell);
     // Each group's terms, in its particles' order: node q's row holds its grid node for now.
@@ -133,9 +132,8 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, groups, 16), [&](const auto& r) {
       for (std::size_t g = r.begin(); g != r.end(); ++g) {
         int* node_at = &e.cross_row[g * kStencil];
-        std::uint8_t* used = &e.cross_used[g * kStencil];
+        std::uint8_t used[kStencil] = {};   // node q's cell nodes with a term (bit k)
         double sum[kStencil * kCell] = {};  // node q's terms at q * kCell + k
-        std::fill(used, used + kStencil, std::uint8_t{0});
         bool massive[kStencil];
         for (int t = group_first[g]; t < group_first[g + 1]; ++t) {
           const auto i = static_cast<std::size_t>(order[static_cast<std::size_t>(t)].place);
@@ -193,11 +191,10 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     auto for_each_column = [&](std::size_t g, auto&& f) {
       const std::size_t first = static_cast<std::size_t>(group_first[g]);
       const AlphaStencil<D>& cell = layer_stencil_[static_cast<std::size_t>(order[first].place)];
-      unsigned any = 0;
-      for (int q = 0; q < kStencil; ++q)
-        any |= e.cross_used[g * kStencil + static_cast<std::size_t>(q)];
       for (int k = 0; k < cell.count; ++k) {
-        if ((any & (1U << k)) != 0) f(static_cast<std::size_t>(e.alpha_col_of[cell.node[k]]), k);
+        if (e.cross_mask[g * kCell + static_cast<std::size_t>(k)] != 0) {
+          f(static_cast<std::size_t>(e.alpha_col_of[cell.node[k]]), k);
+        }
       }
     };
     auto& pair_first = e.cross_pair_first;
@@ -205,9 +202,14 @@ void Solver<D>::enhanced_assemble(DualWall<D>& w) {
     pair_first.assign(columns + 1, 0);
     slab_first.assign(columns + 1, 0);
     for (std::size_t g = 0; g < groups; ++g) {
-      for (int q = 0; q < kStencil; ++q) {
-        const std::size_t at = g * kStencil + static_cast<std::size_t>(q);
-        if (e.cross_used[at] != 0) e.cross_row[at] = row_of(e.cross_row[at]);
+      std::uint32_t with_terms = 0;  // the stencil nodes with a term (bit q)
+      for (int k = 0; k < kCell; ++k) {
+        with_terms |= e.cross_mask[g * kCell + static_cast<std::size_t>(k)];
+      }
+      for (; with_terms != 0; with_terms &= with_terms - 1) {  // in increasing order
+        const std::size_t at =
+            g * kStencil + static_cast<std::size_t>(std::countr_zero(with_terms));
+        e.cross_row[at] = row_of(e.cross_row[at]);
       }
       for_each_column(g, [&](std::size_t c, int k) {
         ++pair_first[c + 1];

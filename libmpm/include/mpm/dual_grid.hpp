@@ -492,11 +492,10 @@ struct EnhancedState {
   std::vector<CrossKey> cross_order;
   std::vector<int> cell_rank;  ///< per boundary cell (setup_dual_walls())
   /// Per group g (cross_group_first[g] .. cross_group_first[g + 1] - 1 in cross_order) and node
-  /// q of its standard stencil: the node's row (its grid node until the rows are numbered), the
-  /// boundary-cell nodes k it has a term with (bit k), and the terms sum_p m_p N^A_q N^alpha_k
+  /// q of its standard stencil: the node's row (its grid node until the rows are numbered), and
+  /// the terms sum_p m_p N^A_q N^alpha_k with the boundary-cell nodes k
   /// (cross_sum[(g * kCellNodes + k) * stencil + q], written where node q has a term with k).
   std::vector<int> cross_group_first, cross_row;
-  std::vector<std::uint8_t> cross_used;
   std::vector<double> cross_sum;
   /// Per group g and boundary-cell node k: the stencil nodes q with a term (bit q), at
   /// cross_mask[g * kCellNodes + k].
