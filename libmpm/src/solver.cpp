@@ -1444,14 +1444,19 @@ void Solver<D>::save_state(Checkpoint& c) const {
       save_factorised(c, phi + "schur", dual_[i].schur_base, *dual_[i].schur);
     }
     // Where the next solves of each kind start CG (the hashes as their bits).
-    auto& structures = c.integers[phi + "last_structure"];
-    structures.clear();
-    for (std::size_t kind = 0; kind < dual_[i].last_lambda.size(); ++kind) {
-      const NodeBlock<D>& lambda = dual_[i].last_lambda[kind];
-      c.reals[phi + "last_lambda_" + std::to_string(kind)].assign(lambda.data(),
-                                                                  lambda.data() + lambda.size());
-      structures.push_back(static_cast<std::int64_t>(dual_[i].last_structure[kind]));
-    }
+    auto save_lambdas = [&](const std::string& which, const auto& lambdas,
+                            const auto& lambda_structures) {
+      auto& structures = c.integers[phi + which + "_structure"];
+      structures.clear();
+      for (std::size_t kind = 0; kind < lambdas.size(); ++kind) {
+        const NodeBlock<D>& lambda = lambdas[kind];
+        c.reals[phi + which + "_lambda_" + std::to_string(kind)].assign(
+            lambda.data(), lambda.data() + lambda.size());
+        structures.push_back(static_cast<std::int64_t>(lambda_structures[kind]));
+      }
+    };
+    save_lambdas("last", dual_[i].last_lambda, dual_[i].last_structure);
+    save_lambdas("earlier", dual_[i].earlier_lambda, dual_[i].earlier_structure);
   }
 }
 
@@ -1534,28 +1539,33 @@ void Solver<D>::restore_state(const Checkpoint& c) {
       refactorise(phi + "schur", w.schur_base, *w.schur, w.pattern_hash, w.schur_factored);
     }
     // Where the next solves of each kind start CG (absent from a checkpoint written before they
-    // were kept: from the factor's answer, until a solve of the kind has found its multipliers).
-    for (std::size_t kind = 0; kind < w.last_lambda.size(); ++kind) {
-      w.last_lambda[kind].resize(0, D);
-      w.last_structure[kind] = 0;
-    }
-    if (const auto it = c.integers.find(phi + "last_structure"); it != c.integers.end()) {
-      if (it->second.size() != w.last_lambda.size()) {
-        throw std::runtime_error(phi + "last_structure: expected " +
-                                 std::to_string(w.last_lambda.size()) + " values");
+    // were kept: from the factor's answer, or not extrapolated, until solves of the kind have
+    // found their multipliers).
+    auto restore_lambdas = [&](const std::string& which, auto& lambdas, auto& lambda_structures) {
+      for (std::size_t kind = 0; kind < lambdas.size(); ++kind) {
+        lambdas[kind].resize(0, D);
+        lambda_structures[kind] = 0;
       }
-      for (std::size_t kind = 0; kind < w.last_lambda.size(); ++kind) {
-        const std::string name = phi + "last_lambda_" + std::to_string(kind);
+      const auto it = c.integers.find(phi + which + "_structure");
+      if (it == c.integers.end()) return;
+      if (it->second.size() != lambdas.size()) {
+        throw std::runtime_error(phi + which + "_structure: expected " +
+                                 std::to_string(lambdas.size()) + " values");
+      }
+      for (std::size_t kind = 0; kind < lambdas.size(); ++kind) {
+        const std::string name = phi + which + "_lambda_" + std::to_string(kind);
         const auto found = c.reals.find(name);
         if (found == c.reals.end() || found->second.size() % d != 0) {
           throw std::runtime_error(name + ": expected a multiple of " + std::to_string(d) +
                                    " values");
         }
-        w.last_lambda[kind].resize(static_cast<Eigen::Index>(found->second.size() / d), D);
-        std::copy(found->second.begin(), found->second.end(), w.last_lambda[kind].data());
-        w.last_structure[kind] = static_cast<std::size_t>(it->second[kind]);
+        lambdas[kind].resize(static_cast<Eigen::Index>(found->second.size() / d), D);
+        std::copy(found->second.begin(), found->second.end(), lambdas[kind].data());
+        lambda_structures[kind] = static_cast<std::size_t>(it->second[kind]);
       }
-    }
+    };
+    restore_lambdas("last", w.last_lambda, w.last_structure);
+    restore_lambdas("earlier", w.earlier_lambda, w.earlier_structure);
     // Which copy of L CG reads (absent from a checkpoint written before there was a choice:
     // the dropped one).
     w.schur->set_dropped_use(SparseLdlt::DroppedUse::usable);

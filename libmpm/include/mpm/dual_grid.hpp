@@ -669,10 +669,11 @@ struct DualWall {
   std::vector<double> solve_work;  ///< ldlt_solve()'s
   /// The multipliers the last solve of each kind found (0: the new velocities, 1: the old ones
   /// FLIP differences against, 2: MUSL's remap) and the hash of the active multipliers they are
-  /// for (factored_structure then): CG against an aged factorisation starts from them when the
-  /// multipliers are the same (layer_couple()). Checkpoints save them.
-  std::array<NodeBlock<D>, 3> last_lambda;
-  std::array<std::size_t, 3> last_structure{};
+  /// for (factored_structure then), and those of the solve of the kind before it (`earlier_`):
+  /// CG against an aged factorisation starts from them, extrapolated, when the multipliers are
+  /// the same (layer_couple()). Checkpoints save both.
+  std::array<NodeBlock<D>, 3> last_lambda, earlier_lambda;
+  std::array<std::size_t, 3> last_structure{}, earlier_structure{};
   double min_cell_size = 0.0;  ///< for the CFL limit
   /// Each boundary node's (cell, slot) pairs: node_cells[node_cell_first[n] ..
   /// node_cell_first[n + 1]), coded as cell times the nodes per cell plus the slot, cells in
