@@ -469,6 +469,8 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
                                const std::vector<Vec<D>>& alpha_momentum,
                                std::vector<Vec<D>>& valpha, bool constrained, bool record) {
   EnhancedState<D>& e = w.enh;
+  // The step's own solves keep their solutions for the next step's start (solve()).
+  const bool extrapolate = record && constrained;
   using Block = typename EnhancedState<D>::Block;
   const auto na = static_cast<Eigen::Index>(e.a_rows.size());
   const auto ns = static_cast<Eigen::Index>(e.alpha_cols.size());
@@ -854,11 +856,42 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
           return false;
         }
       }
-      if (!e.kkt_bordered &&
+      // Against an aged factorisation, refinement starts from the last two solutions of the
+      // step's own solve extrapolated, 2 x_0 - x_1, where both are for these unknowns (the
+      // same held rows and enhancement nodes: contact that has not changed), not from the
+      // factor's answer; a start it does not converge from is tried again from the factor's
+      // answer before the matrix is factorised, as the Phi coupling's CG does. The floor over
+      // 300 steps on two threads: factorisations 22 -> 20 (MLS-MPM) and 27 -> 24 (MUSL); the
+      // last solution alone as the start gave more (27 and 36: docs/performance.md,
+      // 2026-12-07, late night, and 2026-12-08).
+      bool solved = false;
+      auto& recent = e.recent_solution;
+      if (extrapolate && e.kkt_refine && !e.kkt_bordered && recent[0].size() == nv + nc &&
+          recent[1].size() == nv + nc && e.recent_signature[0] == signature &&
+          e.recent_signature[1] == signature && e.recent_columns[0] == e.alpha_cols &&
+          e.recent_columns[1] == e.alpha_cols) {
+        x = 2.0 * recent[0] - recent[1];
+        const LdltValues aged = e.kkt_solver->aged_values(LdltValues::full);
+        const auto aged_solve = [&](const Eigen::VectorXd& r, Eigen::VectorXd& out) {
+          ldlt_solve(*e.kkt_solver, r, out, e.kkt_work.work, aged);
+        };
+        solved = refine(rhs, x, apply_kkt, aged_solve, e.refinements, e.kkt_work.residual,
+                        e.kkt_work.update, 0.0, scene_.coupling_tolerance, as_velocities);
+      }
+      if (!solved && !e.kkt_bordered &&
           !refined_solve(*e.kkt_solver, apply_kkt, formed, e.kkt_base, e.kkt_pattern, e.kkt_refine,
                          rhs, x, e.refinements, e.factorizations, e.kkt_work,
                          scene_.coupling_tolerance, as_velocities)) {
         return false;
+      }
+      if (extrapolate) {
+        // (The buffers of the earlier one reused.)
+        std::swap(recent[0], recent[1]);
+        std::swap(e.recent_signature[0], e.recent_signature[1]);
+        std::swap(e.recent_columns[0], e.recent_columns[1]);
+        recent[0] = x;
+        e.recent_signature[0] = signature;
+        e.recent_columns[0] = e.alpha_cols;
       }
       for (Eigen::Index c = 0; c < ns; ++c) {
         for (int d = 0; d < D; ++d) vs(c, d) = x[c * D + d];

@@ -1431,6 +1431,16 @@ void Solver<D>::save_state(Checkpoint& c) const {
                                                   : std::int64_t{0}};
     c.integers[key + "kkt_signature"].assign(e.kkt_signature.begin(), e.kkt_signature.end());
     c.integers[key + "kkt_alpha_cols"].assign(e.kkt_alpha_cols.begin(), e.kkt_alpha_cols.end());
+    // Where the next steps' refinement starts (the last two solutions and their unknowns).
+    for (std::size_t r = 0; r < e.recent_solution.size(); ++r) {
+      const std::string slot = std::to_string(r);
+      const Eigen::VectorXd& x = e.recent_solution[r];
+      c.reals[key + "recent_solution_" + slot].assign(x.data(), x.data() + x.size());
+      c.integers[key + "recent_signature_" + slot].assign(e.recent_signature[r].begin(),
+                                                          e.recent_signature[r].end());
+      c.integers[key + "recent_columns_" + slot].assign(e.recent_columns[r].begin(),
+                                                        e.recent_columns[r].end());
+    }
     if (e.schur_factored) save_factorised(c, key + "schur", e.schur_base, *e.schur_solver);
     if (e.kkt_factored) save_factorised(c, key + "kkt", e.kkt_base, *e.kkt_solver);
     // Mortar / one-way: the Schur complement the factorisation in hand is of.
@@ -1498,6 +1508,26 @@ void Solver<D>::restore_state(const Checkpoint& c) {
     e.kkt_alpha_cols.clear();
     if (const auto it = c.integers.find(key + "kkt_alpha_cols"); it != c.integers.end()) {
       e.kkt_alpha_cols.assign(it->second.begin(), it->second.end());
+    }
+    // Where the next steps' refinement starts (absent from a checkpoint written before it was
+    // kept: from the factor's answer until two solves have the same unknowns).
+    for (std::size_t r = 0; r < e.recent_solution.size(); ++r) {
+      const std::string slot = std::to_string(r);
+      e.recent_solution[r].resize(0);
+      e.recent_signature[r].clear();
+      e.recent_columns[r].clear();
+      const auto x = c.reals.find(key + "recent_solution_" + slot);
+      if (x == c.reals.end()) continue;
+      const auto& rows = c.integer(key + "recent_signature_" + slot);
+      const auto& columns = c.integer(key + "recent_columns_" + slot);
+      if (x->second.size() != rows.size() + columns.size() * d) {
+        throw std::runtime_error(key + "recent_solution_" + slot + ": expected " +
+                                 std::to_string(rows.size() + columns.size() * d) + " values");
+      }
+      e.recent_solution[r] = Eigen::Map<const Eigen::VectorXd>(
+          x->second.data(), static_cast<Eigen::Index>(x->second.size()));
+      e.recent_signature[r].assign(rows.begin(), rows.end());
+      e.recent_columns[r].assign(columns.begin(), columns.end());
     }
     auto refactorise = [&](const std::string& name, Eigen::SparseMatrix<double>& base,
                            SparseLdlt& solver, std::size_t& pattern, bool& ok) {

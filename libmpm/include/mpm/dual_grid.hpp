@@ -430,6 +430,12 @@ struct EnhancedState {
   /// rows are not the factorised ones (kkt_bordered), or factorised.
   bool kkt_ready = false;
   std::vector<int> prepared_signature;
+  /// The contact system's solutions of the last two solves of the step's own velocities (not
+  /// FLIP's old ones, nor MUSL's remap), [0] the last, with their held rows (signature) and
+  /// enhancement nodes: refinement against an aged factorisation starts from 2 x_0 - x_1 where
+  /// both are for the unknowns of the system in hand (enhanced_solve()). Checkpoints save them.
+  std::array<Eigen::VectorXd, 2> recent_solution;
+  std::array<std::vector<int>, 2> recent_signature, recent_columns;
   /// The held rows of the factorisation in hand: 4 * multiplier + contact state, per row.
   std::vector<int> kkt_signature;
   /// The factorisation in hand bordered for the unknowns (held rows, enhancement nodes) that
