@@ -859,29 +859,22 @@ void Solver<D>::enhanced_solve(DualWall<D>& w, NodeField<Vec<D>>& va,
       // Against an aged factorisation, refinement starts from the last two solutions of the
       // step's own solve extrapolated, 2 x_0 - x_1, where both are for these unknowns (the
       // same held rows and enhancement nodes: contact that has not changed), not from the
-      // factor's answer; a start it does not converge from is tried again from the factor's
-      // answer before the matrix is factorised, as the Phi coupling's CG does. The floor over
-      // 300 steps on two threads: factorisations 22 -> 20 (MLS-MPM) and 27 -> 24 (MUSL); the
-      // last solution alone as the start gave more (27 and 36: docs/performance.md,
-      // 2026-12-07, late night, and 2026-12-08).
-      bool solved = false;
+      // factor's answer (refined_solve() tries that next where it does not converge, as the
+      // Phi coupling's CG does). The floor over 300 steps on two threads: factorisations 22 ->
+      // 20 (MLS-MPM) and 27 -> 24 (MUSL); the last solution alone as the start gave more (27
+      // and 36: docs/performance.md, 2026-12-07, late night, and 2026-12-08).
+      const Eigen::VectorXd* start = nullptr;
       auto& recent = e.recent_solution;
-      if (extrapolate && e.kkt_refine && !e.kkt_bordered && recent[0].size() == nv + nc &&
-          recent[1].size() == nv + nc && e.recent_signature[0] == signature &&
+      if (extrapolate && e.kkt_refine && !e.kkt_bordered && e.recent_signature[0] == signature &&
           e.recent_signature[1] == signature && e.recent_columns[0] == e.alpha_cols &&
           e.recent_columns[1] == e.alpha_cols) {
-        x = 2.0 * recent[0] - recent[1];
-        const LdltValues aged = e.kkt_solver->aged_values(LdltValues::full);
-        const auto aged_solve = [&](const Eigen::VectorXd& r, Eigen::VectorXd& out) {
-          ldlt_solve(*e.kkt_solver, r, out, e.kkt_work.work, aged);
-        };
-        solved = refine(rhs, x, apply_kkt, aged_solve, e.refinements, e.kkt_work.residual,
-                        e.kkt_work.update, 0.0, scene_.coupling_tolerance, as_velocities);
+        x = 2.0 * recent[0] - recent[1];  // (the same unknowns: the same sizes)
+        start = &x;
       }
-      if (!solved && !e.kkt_bordered &&
+      if (!e.kkt_bordered &&
           !refined_solve(*e.kkt_solver, apply_kkt, formed, e.kkt_base, e.kkt_pattern, e.kkt_refine,
                          rhs, x, e.refinements, e.factorizations, e.kkt_work,
-                         scene_.coupling_tolerance, as_velocities)) {
+                         scene_.coupling_tolerance, as_velocities, start)) {
         return false;
       }
       if (extrapolate) {

@@ -760,20 +760,30 @@ bool conjugate_refine(const Rhs& b, Rhs& x, Apply&& apply, Solve&& solve, std::s
 /// L's dropped copy, the first exact solve with each factorisation checks the copy
 /// (check_dropped(), in `norm`), and refinement reads it where it passed: on Enhanced's floor
 /// benchmark the same passes and factorisations as with all of L (docs/performance.md,
-/// 2026-12-07, night). Allocates only to factorise (`w` is the caller's scratch).
+/// 2026-12-07, night). Refinement starts from the factor's answer, or first from `start` where
+/// the caller has a guess (it may be x itself); where it does not converge from the guess, it
+/// tries again from the factor's answer before m is factorised. Allocates only to factorise
+/// (`w` is the caller's scratch).
 template <class Rhs, class Apply, class Form, class Norm = EuclideanNorm>
 bool refined_solve(SparseLdlt& solver, Apply&& apply, Form&& form,
                    Eigen::SparseMatrix<double>& base, std::size_t& pattern, bool& refine,
                    const Rhs& b, Rhs& x, std::size_t& passes, std::size_t& factorizations,
-                   SolveWork<Rhs>& w, double tolerance = kRefineTolerance, const Norm& norm = {}) {
+                   SolveWork<Rhs>& w, double tolerance = kRefineTolerance, const Norm& norm = {},
+                   const Rhs* start = nullptr) {
   if (!refine) {
     ldlt_solve(solver, b, x, w.work);
     check_dropped(solver, b, x, w.update, w.work, norm);
     return true;
   }
   const LdltValues aged = solver.aged_values(LdltValues::full);
-  ldlt_solve(solver, b, x, w.work, aged);
   const auto factor = [&](const Rhs& r, Rhs& out) { ldlt_solve(solver, r, out, w.work, aged); };
+  if (start != nullptr) {
+    if (start != &x) x = *start;
+    if (mpm::refine(b, x, apply, factor, passes, w.residual, w.update, 0.0, tolerance, norm)) {
+      return true;
+    }
+  }
+  ldlt_solve(solver, b, x, w.work, aged);
   if (mpm::refine(b, x, apply, factor, passes, w.residual, w.update, 0.0, tolerance, norm)) {
     return true;
   }
